@@ -1,0 +1,108 @@
+"""Blur image formation: the sharp limit, convergence in n, dense vs sparse, masking, gradients."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mbavo_jax.blur import plane_depths_from_keyframe, reblur, render_blurry
+from mbavo_jax.geometry import ExposureTrajectory, PinholeCamera, Pose
+
+
+def texture(h=96, w=128, seed=0):
+    rng = np.random.default_rng(seed)
+    img = rng.uniform(size=(h // 8 + 2, w // 8 + 2)).astype(np.float32)
+    import cv2
+
+    big = cv2.resize(img, (w + 16, h + 16), interpolation=cv2.INTER_CUBIC)[8 : 8 + h, 8 : 8 + w]
+    return jnp.asarray(np.clip(big, 0, 1))
+
+
+@pytest.fixture
+def scene():
+    img = texture()
+    h, w = img.shape
+    cam = PinholeCamera.create(100.0, 100.0, w / 2, h / 2, w, h)
+    depth = jnp.full((h, w), 2.0, jnp.float32)
+    start = Pose.identity().plus(jnp.array([0.0, -0.02, 0.0, -0.03, 0.0, 0.0], jnp.float32))
+    end = Pose.identity().plus(jnp.array([0.0, 0.02, 0.01, 0.03, 0.01, 0.0], jnp.float32))
+    return img, cam, depth, ExposureTrajectory(start, end)
+
+
+def _pixels(cam, margin=20):
+    u, v = np.meshgrid(np.arange(margin, cam.width - margin, 3), np.arange(margin, cam.height - margin, 3))
+    return jnp.asarray(np.stack([u.ravel(), v.ravel()], -1), jnp.float32)
+
+
+def test_start_equal_end_reproduces_sharp_warp(scene):
+    img, cam, depth, traj = scene
+    still = ExposureTrajectory(traj.start, traj.start)
+    px = _pixels(cam)
+    d = jnp.full(px.shape[0], 2.0)
+    sharp, ok1 = reblur(img, cam, still, px, d, n=1)
+    blurry64, ok64 = reblur(img, cam, still, px, d, n=64)
+    np.testing.assert_allclose(blurry64, sharp, atol=4e-6)  # float32: the mean of 64 equal values rounds
+    assert bool(jnp.all(ok1 == ok64))
+    with jax.enable_x64(True):
+        to64 = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), t)
+        s64, _ = reblur(to64(img), to64(cam), to64(still), to64(px), to64(d), n=1)
+        b64, _ = reblur(to64(img), to64(cam), to64(still), to64(px), to64(d), n=64)
+        np.testing.assert_allclose(b64, s64, atol=1e-12)
+    # identity trajectory: the "warp" is the image itself
+    ident = ExposureTrajectory(Pose.identity(), Pose.identity())
+    same, ok = reblur(img, cam, ident, px, d, n=8)
+    np.testing.assert_allclose(same, img[px[:, 1].astype(int), px[:, 0].astype(int)], atol=1e-5)
+
+
+def test_converges_with_n(scene):
+    img, cam, _, traj = scene
+    px = _pixels(cam)
+    d = jnp.full(px.shape[0], 2.0)
+    vals = {n: reblur(img, cam, traj, px, d, n=n)[0] for n in (4, 16, 64, 256, 1024)}
+    errs = [float(jnp.max(jnp.abs(vals[n] - vals[1024]))) for n in (4, 16, 64, 256)]
+    assert all(a > b for a, b in zip(errs, errs[1:])), errs
+    assert errs[-1] < 2e-3
+    # and it is really blurred: far from the single mid-exposure sample
+    sharp = reblur(img, cam, traj, px, d, n=1)[0]
+    assert float(jnp.mean(jnp.abs(sharp - vals[1024]))) > 10 * errs[-1]
+
+
+def test_dense_render_matches_sparse(scene):
+    img, cam, depth, traj = scene
+    planes = plane_depths_from_keyframe(depth, cam, traj.middle())
+    dense, valid = render_blurry(img, planes, cam, traj, n=32)
+    px = _pixels(cam)
+    sparse, ok = reblur(img, cam, traj, px, jnp.full(px.shape[0], 2.0), n=32)
+    iu, iv = np.asarray(px[:, 0], int), np.asarray(px[:, 1], int)
+    np.testing.assert_allclose(dense[iv, iu], sparse, atol=1e-5)
+    np.testing.assert_array_equal(valid[iv, iu], ok)
+    assert np.all(np.isfinite(dense))
+
+
+def test_invalid_samples_are_masked(scene):
+    img, cam, depth, traj = scene
+    px = jnp.array([[-5.0, 10.0], [10.0, 10.0], [cam.width + 30.0, 40.0], [50.0, 50.0]])
+    d = jnp.array([2.0, 2.0, 2.0, -1.0])
+    vals, ok = reblur(img, cam, traj, px, d, n=16)
+    assert np.all(np.isfinite(vals))
+    assert list(np.asarray(ok)) == [False, True, False, False]
+    assert float(vals[0]) == 0.0 and float(vals[3]) == 0.0
+    nan_depth = depth.at[10:20, 10:20].set(jnp.nan)
+    planes = plane_depths_from_keyframe(nan_depth, cam, traj.middle())
+    dense, valid = render_blurry(img, planes, cam, traj, n=8)
+    assert np.all(np.isfinite(dense)) and not bool(valid[15, 15])
+
+
+def test_gradient_wrt_trajectory_is_finite_and_nonzero(scene):
+    img, cam, _, traj = scene
+    px = _pixels(cam)
+    d = jnp.full(px.shape[0], 2.0)
+
+    def loss(delta):
+        v, ok = reblur(img, cam, traj.plus(delta), px, d, n=16)
+        return jnp.sum(jnp.where(ok, v, 0.0) ** 2)
+
+    g = jax.grad(loss)(jnp.zeros(12, jnp.float32))
+    assert np.all(np.isfinite(g)) and float(jnp.linalg.norm(g)) > 0

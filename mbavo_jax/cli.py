@@ -12,8 +12,7 @@ import sys
 __all__ = ["main"]
 
 
-class UserError(Exception):
-    """A problem with the user's input: reported as one line, exit status 1."""
+from .errors import MbavoError as UserError  # every user-facing error: one line, exit status 1
 
 
 def _cmd_jacobians(args) -> int:
@@ -27,6 +26,128 @@ def _cmd_jacobians(args) -> int:
     return 0
 
 
+def _cmd_synth(args) -> int:
+    import dataclasses
+
+    from .synthetic import PRESETS, SynthConfig, blur_real_sequence, generate_sequence
+
+    progress = None if args.quiet else sys.stderr
+    if args.source:
+        from .datasets import open_sequence
+
+        seq = open_sequence(args.source)
+        blur = args.blur_px if args.blur_px is not None else {"none": 0.0, "mild": 5.0, "strong": 20.0, "extreme": 40.0}[args.preset]
+        summary = blur_real_sequence(seq, args.out, blur_px=blur, n=args.subframes or 64, seed=args.seed, noise=args.noise or 0.0, progress=progress)
+    else:
+        values = dict(PRESETS[args.preset])
+        for key in ("frames", "width", "height", "fps", "exposure_ms", "speed", "rotation_rate", "subframes", "noise", "seed"):
+            v = getattr(args, key)
+            if v is not None:
+                values[key] = v
+        values["real_textures"] = not args.no_real_textures
+        cfg = SynthConfig(**{k: v for k, v in values.items() if k in {f.name for f in dataclasses.fields(SynthConfig)}})
+        if cfg.frames < 1 or cfg.width < 16 or cfg.height < 16:
+            raise UserError("need --frames >= 1 and an image of at least 16x16 pixels")
+        summary = generate_sequence(cfg, args.out, progress=progress)
+    if not args.quiet:
+        print(
+            f"wrote {summary['frames']} frames to {args.out}: mean blur {summary['mean_blur_px']:.1f} px "
+            f"(median {summary['median_blur_px']:.1f}, max {summary['max_blur_px']:.1f}) in {summary['seconds']:.1f} s"
+        )
+    return 0
+
+
+def _cmd_eval(args) -> int:
+    import numpy as np
+
+    from . import evaluation as ev
+    from .io import read_camera_yaml, read_exposure_file, read_tum_trajectory
+
+    if args.metric == "exposure":
+        ref = read_exposure_file(args.reference)
+        est = read_exposure_file(args.estimate)
+        cam = read_camera_yaml(args.camera)
+        res = ev.exposure_path_error(ref, est, cam, depth=args.depth, max_diff=args.t_max_diff)
+        _print_result(res, args.format, ["n_matched"], nested=("translation_m", "rotation_deg", "reprojection_px"))
+        return 0
+    t_ref, p_ref = read_tum_trajectory(args.reference)
+    t_est, p_est = read_tum_trajectory(args.estimate)
+    if args.metric == "ape":
+        res = ev.ape(t_ref, p_ref, t_est, p_est, align=args.align, max_diff=args.t_max_diff)
+    else:
+        res = ev.rpe(t_ref, p_ref, t_est, p_est, delta=args.delta, align=args.align if args.align == "sim3" else "none", max_diff=args.t_max_diff)
+    if args.sequence:
+        from .datasets import open_sequence
+
+        seq = open_sequence(args.sequence)
+        res["frame_drop_rate"] = ev.frame_drop_rate(seq.timestamps, t_est, args.t_max_diff)
+    errors = np.asarray(res.pop("errors"))
+    if args.plot:
+        import pathlib
+
+        from .evaluation import plots
+
+        out = pathlib.Path(args.plot)
+        out.mkdir(parents=True, exist_ok=True)
+        i_est, i_ref = ev.associate(t_est, t_ref, args.t_max_diff)
+        if args.metric == "ape":
+            from .evaluation.metrics import _align, pose_matrices
+
+            T_al = _align(pose_matrices(p_ref[i_ref]), pose_matrices(p_est[i_est]), args.align)[0]
+            plots.plot_trajectories(out / "trajectory.png", p_ref[i_ref, :3], T_al[:, :3, 3], f"APE rmse {res['rmse']:.4f} m ({args.align})")
+            plots.plot_error_over_time(out / "ape_over_time.png", t_est[i_est], errors, "APE over time")
+        else:
+            plots.plot_error_over_time(out / "rpe_over_time.png", t_est[i_est][: len(errors)], errors, "RPE over time", "RPE [m]")
+    _print_result(res, args.format, ["n_matched", "alignment", "scale", "delta", "frame_drop_rate"])
+    return 0
+
+
+def _cmd_info(args) -> int:
+    from .datasets import open_sequence
+
+    seq = open_sequence(args.sequence, args.kind)
+    cam = seq.camera
+    info = {
+        "name": seq.name,
+        "kind": seq.kind,
+        "frames": len(seq),
+        "duration_s": float(seq.timestamps[-1] - seq.timestamps[0]) if len(seq) > 1 else 0.0,
+        "camera": {"fx": float(cam.fx), "fy": float(cam.fy), "cx": float(cam.cx), "cy": float(cam.cy), "width": cam.width, "height": cam.height},
+        "depth": seq.has_depth,
+        "exposure_times": seq.exposures is not None,
+        "groundtruth_poses": 0 if seq.groundtruth is None else int(len(seq.groundtruth[0])),
+        "exposure_paths": 0 if seq.exposure_paths is None else int(len(seq.exposure_paths[0])),
+    }
+    if args.check:
+        for i in range(len(seq)):
+            seq[i]  # raises DataError naming the file on a bad frame
+            if not args.quiet and sys.stderr.isatty():
+                sys.stderr.write(f"\rchecked {i + 1}/{len(seq)}")
+        info["checked"] = True
+    if args.format == "json":
+        print(json.dumps(info, indent=2))
+    else:
+        for k, v in info.items():
+            print(f"{k:>18}: {v}")
+    return 0
+
+
+def _print_result(res: dict, fmt: str, extra_keys, nested=()) -> None:
+    if fmt == "json":
+        print(json.dumps(res, indent=2))
+        return
+    if nested:
+        for k in nested:
+            st = res[k]
+            print(f"{k:>16}: " + "  ".join(f"{s} {st[s]:.5g}" for s in ("rmse", "mean", "median", "std", "min", "max")))
+    else:
+        for s in ("rmse", "mean", "median", "std", "min", "max"):
+            print(f"{s:>8}  {res[s]:.6f}")
+    for k in extra_keys:
+        if k in res:
+            print(f"{k:>8}  {res[k]}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mbavo", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -35,6 +156,48 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=["table", "json"], default="table")
     p.add_argument("--seed", type=int, default=0, help="seed of the random samples (default 0)")
     p.set_defaults(func=_cmd_jacobians)
+
+    p = sub.add_parser("synth", help="generate a blurry sequence with ground-truth exposure paths (TUM layout)")
+    p.add_argument("--out", required=True, help="output folder (created; must be empty or a previous synth output)")
+    p.add_argument("--preset", choices=["none", "mild", "strong", "extreme"], default="strong",
+                   help="blur level: mean blur ~0 / 5 / 20 / 40 px at 640x480 (default strong)")
+    p.add_argument("--from", dest="source", metavar="SEQ", help="blur a real RGB-D sequence (with depth) instead of rendering")
+    p.add_argument("--blur-px", type=float, help="with --from: mean blur length in pixels (default from --preset)")
+    p.add_argument("--frames", type=int, help="number of frames (default 100)")
+    p.add_argument("--width", type=int, help="image width (default 640)")
+    p.add_argument("--height", type=int, help="image height (default 480)")
+    p.add_argument("--fps", type=float, help="frame rate (default 30)")
+    p.add_argument("--exposure-ms", dest="exposure_ms", type=float, help="exposure time τ in ms (preset)")
+    p.add_argument("--speed", type=float, help="peak camera speed in m/s (preset)")
+    p.add_argument("--rotation-rate", dest="rotation_rate", type=float, help="peak rotation rate in deg/s (preset)")
+    p.add_argument("--subframes", type=int, help="sub-frame renders per exposure (default 64)")
+    p.add_argument("--noise", type=float, help="Gaussian noise std on [0, 1] intensities (default 0.002)")
+    p.add_argument("--seed", type=int, default=0, help="seed (output is deterministic for a seed)")
+    p.add_argument("--no-real-textures", action="store_true", help="procedural textures only (no ../shared/data photos)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=_cmd_synth)
+
+    p = sub.add_parser("info", help="describe a sequence (layout, camera, depth, ground truth); --check reads every frame")
+    p.add_argument("sequence")
+    p.add_argument("--kind", default="auto", choices=["auto", "tum", "kitti", "euroc", "dso", "folder"])
+    p.add_argument("--check", action="store_true", help="read and validate every frame")
+    p.add_argument("--format", choices=["table", "json"], default="table")
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=_cmd_info)
+
+    p = sub.add_parser("eval", help="evaluate an estimated trajectory (APE, RPE) or exposure paths")
+    p.add_argument("metric", choices=["ape", "rpe", "exposure"])
+    p.add_argument("reference", help="ground truth (TUM file; exposure.txt for 'exposure')")
+    p.add_argument("estimate", help="estimate (TUM file; exposure.txt for 'exposure')")
+    p.add_argument("--align", "-a", choices=["none", "se3", "sim3"], default="se3", help="Umeyama alignment (default se3)")
+    p.add_argument("--t_max_diff", type=float, default=0.01, help="max timestamp difference for association in s (default 0.01)")
+    p.add_argument("--delta", type=int, default=1, help="RPE frame delta (default 1)")
+    p.add_argument("--sequence", help="sequence folder: also report the frame-drop rate")
+    p.add_argument("--camera", help="camera.yaml (needed for 'exposure')")
+    p.add_argument("--depth", type=float, default=2.0, help="'exposure': depth of the reprojection grid in m (default 2)")
+    p.add_argument("--plot", metavar="DIR", help="write PNG plots to DIR")
+    p.add_argument("--format", choices=["table", "json"], default="table")
+    p.set_defaults(func=_cmd_eval)
     return parser
 
 

@@ -1,0 +1,82 @@
+"""The frame type every loader returns, and the lazy sequence."""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+from typing import Callable
+
+import numpy as np
+
+from ..errors import DataError
+from ..geometry.camera import PinholeCamera
+
+__all__ = ["Frame", "Sequence"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Frame:
+    """One image of a sequence.
+
+    ``image``: float32 grey in [0, 1], shape (H, W). ``depth``: float32 metres (NaN = none) or None.
+    ``timestamp``: seconds, mid-exposure. ``exposure``: exposure time in seconds, or None.
+    """
+
+    index: int
+    timestamp: float
+    image: np.ndarray
+    camera: PinholeCamera
+    depth: np.ndarray | None = None
+    exposure: float | None = None
+    path: str = ""
+
+
+@dataclasses.dataclass
+class Sequence:
+    """A lazily loaded sequence. ``frame_loader(i)`` reads frame i from disk on demand.
+
+    ``groundtruth``: (stamps (M,), poses (M, 7) [t, q], camera-to-world) or None.
+    ``exposure_paths``: (stamps, start (N, 7), end (N, 7)) camera-to-world, or None.
+    """
+
+    name: str
+    path: pathlib.Path
+    camera: PinholeCamera
+    timestamps: np.ndarray
+    frame_loader: Callable[[int], Frame]
+    exposures: np.ndarray | None = None
+    groundtruth: tuple[np.ndarray, np.ndarray] | None = None
+    exposure_paths: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    has_depth: bool = False
+    kind: str = ""
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def __getitem__(self, i: int) -> Frame:
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"frame {i} out of range for a sequence of {n} frames")
+        frame = self.frame_loader(i % n)
+        h, w = frame.image.shape
+        if (w, h) != (self.camera.width, self.camera.height):
+            raise DataError(
+                frame.path,
+                f"image size {w}x{h} differs from the camera's {self.camera.width}x{self.camera.height}",
+            )
+        return frame
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self[i]
+
+    def exposure_of(self, i: int) -> float | None:
+        return None if self.exposures is None else float(self.exposures[i])
+
+
+def sorted_stamps_or_error(path, stamps: np.ndarray) -> np.ndarray:
+    d = np.diff(stamps)
+    if np.any(d <= 0):
+        i = int(np.nonzero(d <= 0)[0][0]) + 1
+        raise DataError(path, f"timestamps must increase; entry {i} ({stamps[i]}) does not")
+    return stamps

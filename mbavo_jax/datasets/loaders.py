@@ -1,0 +1,331 @@
+"""TUM RGB-D, KITTI odometry, EuRoC, DSO-style and plain-folder loaders."""
+
+from __future__ import annotations
+
+import pathlib
+import re
+
+import numpy as np
+import yaml
+
+from ..errors import DataError
+from ..geometry.camera import PinholeCamera
+from ..io import (
+    read_camera_yaml,
+    read_depth_png,
+    read_exposure_file,
+    read_file_list,
+    read_image_gray,
+    read_tum_trajectory,
+)
+from .base import Frame, Sequence, sorted_stamps_or_error
+
+__all__ = ["open_sequence", "open_tum", "open_kitti", "open_euroc", "open_dso", "open_image_folder"]
+
+# Intrinsics published by the TUM RGB-D benchmark (ROS default for fr3, calibrated fr1/fr2).
+TUM_CAMERAS = {
+    "freiburg1": (517.3, 516.5, 318.6, 255.3),
+    "freiburg2": (520.9, 521.0, 325.1, 249.7),
+    "freiburg3": (535.4, 539.2, 320.1, 247.6),
+}
+IMAGE_EXT = (".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
+
+
+def _camera_from_dict(d: dict) -> PinholeCamera:
+    return PinholeCamera.create(d["fx"], d["fy"], d["cx"], d["cy"], d["width"], d["height"])
+
+
+def _associate(stamps_a, stamps_b, max_diff):
+    """For each stamp in a, the index of the nearest stamp in b within max_diff, or -1."""
+    idx = np.searchsorted(stamps_b, stamps_a)
+    best = np.full(len(stamps_a), -1)
+    for k, (t, j) in enumerate(zip(stamps_a, idx)):
+        cands = [c for c in (j - 1, j) if 0 <= c < len(stamps_b)]
+        if not cands:
+            continue
+        c = min(cands, key=lambda c: abs(stamps_b[c] - t))
+        if abs(stamps_b[c] - t) <= max_diff:
+            best[k] = c
+    return best
+
+
+def _first_image_size(path) -> tuple[int, int]:
+    img = read_image_gray(path)
+    return img.shape[1], img.shape[0]
+
+
+def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02) -> Sequence:
+    """TUM RGB-D layout: ``rgb.txt``, optional ``depth.txt`` (associated within ``max_diff`` s),
+    ``groundtruth.txt``, ``exposure.txt`` and ``times.txt``; camera from ``camera.yaml`` or the
+    TUM calibration named in ``rgb.txt``'s header / the folder name (freiburg1/2/3)."""
+    root = pathlib.Path(path)
+    rgb = read_file_list(root / "rgb.txt", "rgb list")
+    stamps = np.array([s for _, s, _ in rgb])
+    names = [n for _, _, n in rgb]
+    cam_info: dict = {}
+    if camera is None:
+        if (root / "camera.yaml").is_file():
+            cam_info = read_camera_yaml(root / "camera.yaml")
+            camera = _camera_from_dict(cam_info)
+        else:
+            header = (root / "rgb.txt").read_text(errors="replace")[:400] + " " + root.name
+            key = next((k for k in TUM_CAMERAS if k in header or k.replace("freiburg", "fr") in header), None)
+            if key is None:
+                raise DataError(root, "no camera.yaml and no TUM 'freiburgN' camera named in rgb.txt or the folder name")
+            w, h = _first_image_size(root / names[0])
+            camera = PinholeCamera.create(*TUM_CAMERAS[key], w, h)
+    depth_scale = float(cam_info.get("depth_scale", 5000.0))
+    depth_names = None
+    if (root / "depth.txt").is_file():
+        dl = read_file_list(root / "depth.txt", "depth list")
+        dstamps = np.array([s for _, s, _ in dl])
+        match = _associate(stamps, dstamps, max_diff)
+        depth_names = [dl[m][2] if m >= 0 else None for m in match]
+    exposures = None
+    if (root / "times.txt").is_file():
+        exposures = _dso_times(root / "times.txt", len(stamps))[1]
+    elif "exposure_ms" in cam_info:
+        exposures = np.full(len(stamps), float(cam_info["exposure_ms"]) / 1000.0)
+    gt = read_tum_trajectory(root / "groundtruth.txt") if (root / "groundtruth.txt").is_file() else None
+    exp_paths = read_exposure_file(root / "exposure.txt") if (root / "exposure.txt").is_file() else None
+
+    def load(i: int) -> Frame:
+        img_path = root / names[i]
+        img = read_image_gray(img_path)
+        depth = None
+        if depth_names is not None:
+            if depth_names[i] is None:
+                raise DataError(root / "depth.txt", f"no depth within {max_diff} s of rgb frame {i} ({stamps[i]:.6f})")
+            depth = read_depth_png(root / depth_names[i], depth_scale, img.shape)
+        exp = None if exposures is None else float(exposures[i])
+        return Frame(i, float(stamps[i]), img, camera, depth, exp, str(img_path))
+
+    return Sequence(root.name, root, camera, stamps, load, exposures, gt, exp_paths, depth_names is not None, "tum")
+
+
+def _kitti_camera(calib_path, image_path) -> PinholeCamera:
+    with open(calib_path) as fh:
+        for k, line in enumerate(fh, start=1):
+            if line.startswith("P0:"):
+                vals = line.split()[1:]
+                if len(vals) != 12:
+                    raise DataError(calib_path, f"P0 needs 12 numbers, found {len(vals)}", k)
+                try:
+                    P = np.array([float(v) for v in vals]).reshape(3, 4)
+                except ValueError:
+                    raise DataError(calib_path, "P0 has a value that is not a number", k) from None
+                w, h = _first_image_size(image_path)
+                try:
+                    return PinholeCamera.create(P[0, 0], P[1, 1], P[0, 2], P[1, 2], w, h)
+                except ValueError as exc:
+                    raise DataError(calib_path, str(exc), k) from None
+    raise DataError(calib_path, "no 'P0:' line")
+
+
+def _kitti_poses(path) -> np.ndarray:
+    from ..geometry.quaternion import from_matrix
+
+    rows = []
+    with open(path) as fh:
+        for k, line in enumerate(fh, start=1):
+            vals = line.split()
+            if not vals:
+                continue
+            if len(vals) != 12:
+                raise DataError(path, f"expected 12 numbers (3x4 pose), found {len(vals)}", k)
+            T = np.array([float(v) for v in vals]).reshape(3, 4)
+            q = np.asarray(from_matrix(T[:, :3]))
+            rows.append(np.concatenate([T[:, 3], q]))
+    return np.array(rows)
+
+
+def open_kitti(path) -> Sequence:
+    """KITTI odometry: ``calib.txt`` (P0), ``times.txt``, images in ``image_0/`` (official layout) or
+    listed in ``rgb.txt``; ground truth from ``poses.txt`` (3x4 rows) or ``groundtruth.txt`` (TUM)."""
+    root = pathlib.Path(path)
+    times = root / "times.txt"
+    if not times.is_file():
+        raise DataError(times, "times.txt not found")
+    stamps = np.array([v[0] for _, v in _table(times, (1,))])
+    if (root / "image_0").is_dir():
+        files = sorted(p for p in (root / "image_0").iterdir() if p.suffix.lower() in IMAGE_EXT)
+    else:
+        files = [root / n for _, _, n in read_file_list(root / "rgb.txt", "rgb list")]
+    if len(files) > len(stamps):
+        raise DataError(times, f"{len(stamps)} timestamps but {len(files)} images")
+    stamps = sorted_stamps_or_error(times, stamps[: len(files)])  # a clip may list the full sequence's times
+    camera = _kitti_camera(root / "calib.txt", files[0])
+    gt = None
+    if (root / "groundtruth.txt").is_file():
+        gt = read_tum_trajectory(root / "groundtruth.txt")
+    elif (root / "poses.txt").is_file():
+        gt = (stamps, _kitti_poses(root / "poses.txt"))
+
+    def load(i):
+        return Frame(i, float(stamps[i]), read_image_gray(files[i]), camera, None, None, str(files[i]))
+
+    return Sequence(root.name, root, camera, stamps, load, None, gt, None, False, "kitti")
+
+
+def _table(path, ncols):
+    from ..io import _rows
+
+    return _rows(path, ncols, path.name)
+
+
+def open_euroc(path) -> Sequence:
+    """EuRoC MAV: ``mav0/cam0/data.csv`` (ns stamps), ``mav0/cam0/sensor.yaml`` (intrinsics,
+    resolution, T_BS); ground truth ``mav0/state_groundtruth_estimate0/data.csv`` (body poses,
+    converted to the camera with T_BS)."""
+    from ..geometry.pose import Pose
+
+    root = pathlib.Path(path)
+    cam_dir = root / "mav0" / "cam0"
+    csv = cam_dir / "data.csv"
+    if not csv.is_file():
+        raise DataError(csv, "EuRoC cam0/data.csv not found")
+    stamps, names = [], []
+    with open(csv) as fh:
+        for k, line in enumerate(fh, start=1):
+            if line.startswith("#") or not line.strip():
+                continue
+            parts = [p.strip() for p in line.split(",")]
+            if len(parts) != 2:
+                raise DataError(csv, "expected 'timestamp_ns,filename'", k)
+            stamps.append(int(parts[0]) * 1e-9)
+            names.append(parts[1])
+    stamps = sorted_stamps_or_error(csv, np.array(stamps))
+    sensor = cam_dir / "sensor.yaml"
+    if not sensor.is_file():
+        raise DataError(sensor, "EuRoC sensor.yaml not found")
+    text = sensor.read_text()
+    text = re.sub(r"^%YAML.*$", "", text, flags=re.M)
+    info = yaml.safe_load(text)
+    try:
+        fu, fv, cu, cv = (float(v) for v in info["intrinsics"])
+        w, h = (int(v) for v in info["resolution"])
+        camera = PinholeCamera.create(fu, fv, cu, cv, w, h)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DataError(sensor, f"bad intrinsics/resolution ({exc})") from None
+    T_BS = np.eye(4)
+    if "T_BS" in info:
+        T_BS = np.array(info["T_BS"]["data"], dtype=float).reshape(4, 4)
+    gt = None
+    gt_csv = root / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+    if gt_csv.is_file():
+        rows = np.loadtxt(gt_csv, delimiter=",", comments="#", usecols=range(8))
+        t_gt = rows[:, 0] * 1e-9
+        body = [Pose.from_vector(np.r_[r[1:4], r[5:8], r[4]]) for r in rows]  # EuRoC stores qw first
+        cam = Pose.from_matrix(T_BS)
+        poses = np.array([np.asarray(b.compose(cam).to_vector()) for b in body])
+        gt = (t_gt, poses)
+
+    def load(i):
+        p = cam_dir / "data" / names[i]
+        return Frame(i, float(stamps[i]), read_image_gray(p), camera, None, None, str(p))
+
+    return Sequence(root.name, root, camera, stamps, load, None, gt, None, False, "euroc")
+
+
+def _dso_times(path, n_expected=None):
+    ids, stamps, exps = [], [], []
+    for k, vals in _table(pathlib.Path(path), (2, 3)):
+        ids.append(vals[0])
+        stamps.append(vals[1])
+        exps.append(vals[2] / 1000.0 if len(vals) == 3 else np.nan)
+    stamps = sorted_stamps_or_error(path, np.array(stamps))
+    exps = np.array(exps)
+    if n_expected is not None and len(stamps) != n_expected:
+        raise DataError(path, f"{len(stamps)} entries but the sequence has {n_expected} frames")
+    return stamps, (None if np.all(np.isnan(exps)) else exps)
+
+
+def _dso_camera(path, image_path) -> PinholeCamera:
+    lines = [ln.split() for ln in pathlib.Path(path).read_text().splitlines() if ln.strip()]
+    if not lines:
+        raise DataError(path, "empty camera.txt")
+    first = lines[0]
+    if first and not re.match(r"^-?[0-9.]", first[0]):
+        first = first[1:]  # model name, e.g. "Pinhole"
+    try:
+        fx, fy, cx, cy = (float(v) for v in first[:4])
+    except ValueError:
+        raise DataError(path, "first line must be '[Pinhole] fx fy cx cy [omega]'", 1) from None
+    if len(lines) > 1:
+        w, h = int(lines[1][0]), int(lines[1][1])
+    else:
+        w, h = _first_image_size(image_path)
+    if cx < 1 and cy < 1:  # DSO's relative intrinsics (fraction of the image size, pixel corner origin)
+        fx, fy, cx, cy = fx * w, fy * h, cx * w - 0.5, cy * h - 0.5
+    try:
+        return PinholeCamera.create(fx, fy, cx, cy, w, h)
+    except ValueError as exc:
+        raise DataError(path, str(exc), 1) from None
+
+
+def open_dso(path) -> Sequence:
+    """DSO-style folder: ``images/`` (sorted), ``times.txt`` (``id timestamp [exposure_ms]``),
+    ``camera.txt``; optional ``depth/`` with the same file names (16-bit, /5000) and
+    ``groundtruth.txt``."""
+    root = pathlib.Path(path)
+    img_dir = root / "images"
+    if not img_dir.is_dir():
+        raise DataError(img_dir, "DSO images/ folder not found")
+    files = sorted(p for p in img_dir.iterdir() if p.suffix.lower() in IMAGE_EXT)
+    if not files:
+        raise DataError(img_dir, "no images")
+    stamps, exposures = _dso_times(root / "times.txt", len(files))
+    camera = _dso_camera(root / "camera.txt", files[0])
+    depth_dir = root / "depth"
+    has_depth = depth_dir.is_dir()
+    gt = read_tum_trajectory(root / "groundtruth.txt") if (root / "groundtruth.txt").is_file() else None
+
+    def load(i):
+        img = read_image_gray(files[i])
+        depth = read_depth_png(depth_dir / files[i].name, 5000.0, img.shape) if has_depth else None
+        exp = None if exposures is None else float(exposures[i])
+        return Frame(i, float(stamps[i]), img, camera, depth, exp, str(files[i]))
+
+    return Sequence(root.name, root, camera, stamps, load, exposures, gt, None, has_depth, "dso")
+
+
+def open_image_folder(path) -> Sequence:
+    """A folder of images plus ``camera.yaml`` (``fx fy cx cy width height``, optional ``fps``)."""
+    root = pathlib.Path(path)
+    info = read_camera_yaml(root / "camera.yaml")
+    camera = _camera_from_dict(info)
+    files = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_EXT)
+    if not files:
+        raise DataError(root, "no images in folder")
+    fps = float(info.get("fps", 30.0))
+    stamps = np.arange(len(files)) / fps
+
+    def load(i):
+        return Frame(i, float(stamps[i]), read_image_gray(files[i]), camera, None, None, str(files[i]))
+
+    return Sequence(root.name, root, camera, stamps, load, None, None, None, False, "folder")
+
+
+def open_sequence(path, kind: str = "auto") -> Sequence:
+    """Open a sequence, detecting its layout unless ``kind`` is tum|kitti|euroc|dso|folder."""
+    root = pathlib.Path(path)
+    if not root.exists():
+        raise DataError(root, "sequence folder not found")
+    if not root.is_dir():
+        raise DataError(root, "not a folder")
+    openers = {"tum": open_tum, "kitti": open_kitti, "euroc": open_euroc, "dso": open_dso, "folder": open_image_folder}
+    if kind != "auto":
+        if kind not in openers:
+            raise DataError(root, f"unknown dataset kind '{kind}' (choose from {', '.join(openers)})")
+        return openers[kind](root)
+    if (root / "mav0").is_dir():
+        return open_euroc(root)
+    if (root / "calib.txt").is_file() and (root / "times.txt").is_file():
+        return open_kitti(root)
+    if (root / "rgb.txt").is_file():
+        return open_tum(root)
+    if (root / "images").is_dir() and (root / "times.txt").is_file():
+        return open_dso(root)
+    if (root / "camera.yaml").is_file():
+        return open_image_folder(root)
+    raise DataError(root, "unknown sequence layout (expected TUM rgb.txt, KITTI calib.txt+times.txt, EuRoC mav0/, DSO images/+times.txt, or images+camera.yaml)")

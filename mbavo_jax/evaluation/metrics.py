@@ -1,0 +1,143 @@
+"""APE, RPE, frame drops and exposure-path error (numpy, float64)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import MbavoError
+from .align import umeyama
+from .associate import associate
+
+__all__ = ["statistics", "ape", "rpe", "frame_drop_rate", "exposure_path_error", "pose_matrices"]
+
+
+def _quat_to_R(q):
+    x, y, z, w = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def pose_matrices(poses: np.ndarray) -> np.ndarray:
+    """(N, 7) [t, q] → (N, 4, 4)."""
+    T = np.tile(np.eye(4), (len(poses), 1, 1))
+    for k, p in enumerate(poses):
+        T[k, :3, :3] = _quat_to_R(p[3:] / np.linalg.norm(p[3:]))
+        T[k, :3, 3] = p[:3]
+    return T
+
+
+def statistics(errors: np.ndarray) -> dict:
+    e = np.asarray(errors, np.float64)
+    return {
+        "rmse": float(np.sqrt(np.mean(e**2))),
+        "mean": float(np.mean(e)),
+        "median": float(np.median(e)),
+        "std": float(np.std(e)),
+        "min": float(np.min(e)),
+        "max": float(np.max(e)),
+        "sse": float(np.sum(e**2)),
+    }
+
+
+def _matched(stamps_ref, poses_ref, stamps_est, poses_est, max_diff, offset=0.0):
+    i_est, i_ref = associate(stamps_est, stamps_ref, max_diff, offset)
+    if len(i_est) == 0:
+        raise MbavoError(f"no overlapping timestamps between estimate and reference (max_diff {max_diff} s)")
+    return i_est, i_ref, pose_matrices(poses_ref[i_ref]), pose_matrices(poses_est[i_est])
+
+
+def _align(T_ref, T_est, align: str):
+    if align == "none":
+        return T_est, np.eye(3), np.zeros(3), 1.0
+    if align not in ("se3", "sim3"):
+        raise MbavoError(f"unknown alignment '{align}' (none, se3, sim3)")
+    R, t, s = umeyama(T_est[:, :3, 3], T_ref[:, :3, 3], with_scale=align == "sim3")
+    out = T_est.copy()
+    out[:, :3, :3] = R @ T_est[:, :3, :3]
+    out[:, :3, 3] = s * T_est[:, :3, 3] @ R.T + t
+    return out, R, t, s
+
+
+def ape(stamps_ref, poses_ref, stamps_est, poses_est, align: str = "se3", max_diff: float = 0.01) -> dict:
+    """Absolute trajectory error of the translation part after alignment (evo's ``ape -a [-s]``)."""
+    i_est, _, T_ref, T_est = _matched(stamps_ref, poses_ref, stamps_est, poses_est, max_diff)
+    T_al, R, t, s = _align(T_ref, T_est, align)
+    err = np.linalg.norm(T_al[:, :3, 3] - T_ref[:, :3, 3], axis=1)
+    out = statistics(err)
+    out.update(n_matched=int(len(i_est)), alignment=align, scale=float(s), errors=err.tolist())
+    return out
+
+
+def rpe(stamps_ref, poses_ref, stamps_est, poses_est, delta: int = 1, align: str = "none", max_diff: float = 0.01) -> dict:
+    """Relative pose error of the translation part over ``delta`` matched frames (evo's ``rpe``)."""
+    i_est, _, T_ref, T_est = _matched(stamps_ref, poses_ref, stamps_est, poses_est, max_diff)
+    if len(i_est) <= delta:
+        raise MbavoError(f"RPE needs more than delta={delta} matched poses, got {len(i_est)}")
+    if align == "sim3":
+        T_est, _, _, _ = _align(T_ref, T_est, align)
+    errs = []
+    for k in range(len(T_ref) - delta):
+        dr = np.linalg.inv(T_ref[k]) @ T_ref[k + delta]
+        de = np.linalg.inv(T_est[k]) @ T_est[k + delta]
+        E = np.linalg.inv(dr) @ de
+        errs.append(np.linalg.norm(E[:3, 3]))
+    out = statistics(np.array(errs))
+    out.update(n_matched=int(len(i_est)), delta=delta, errors=errs)
+    return out
+
+
+def frame_drop_rate(stamps_frames, stamps_est, max_diff: float = 0.01) -> float:
+    """Fraction of the sequence's frames that have no estimated pose."""
+    if len(stamps_frames) == 0:
+        return 0.0
+    i, _ = associate(np.asarray(stamps_frames), np.asarray(stamps_est), max_diff) if len(stamps_est) else ([], [])
+    return 1.0 - len(i) / len(stamps_frames)
+
+
+def exposure_path_error(ref, est, camera: dict, depth: float = 2.0, grid: int = 8, max_diff: float = 0.01) -> dict:
+    """Start and end pose errors of estimated exposure paths, and their mean reprojection error.
+
+    ``ref`` and ``est`` are (stamps, start (N, 7), end (N, 7)) camera-to-world. Each path is taken
+    relative to its own mid-exposure pose (so global drift is removed): the error of the start pose
+    is that of T_mid⁻¹ T_start. The reprojection error is the mean pixel distance, over a
+    ``grid`` x ``grid`` pixel grid back-projected at ``depth`` metres in the reference mid frame, of
+    the points projected with the estimated vs reference start (and end) relative poses.
+    """
+    from .associate import slerp
+
+    i_est, i_ref = associate(est[0], ref[0], max_diff)
+    if len(i_est) == 0:
+        raise MbavoError("no overlapping timestamps between estimated and reference exposure paths")
+    fx, fy, cx, cy, w, h = (camera[k] for k in ("fx", "fy", "cx", "cy", "width", "height"))
+    u, v = np.meshgrid(np.linspace(0.1 * w, 0.9 * w, grid), np.linspace(0.1 * h, 0.9 * h, grid))
+    P = np.stack([(u.ravel() - cx) / fx * depth, (v.ravel() - cy) / fy * depth, np.full(u.size, depth)], 1)
+
+    def rel(start, end):
+        mid = np.concatenate([(start[:3] + end[:3]) / 2, slerp(start[3:], end[3:], 0.5)])
+        Tm = pose_matrices(mid[None])[0]
+        return np.linalg.inv(Tm) @ pose_matrices(start[None])[0], np.linalg.inv(Tm) @ pose_matrices(end[None])[0]
+
+    def project(T_cur_ref):
+        Q = P @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
+        return np.stack([fx * Q[:, 0] / Q[:, 2] + cx, fy * Q[:, 1] / Q[:, 2] + cy], 1)
+
+    trans, rot, reproj = [], [], []
+    for ie, ir in zip(i_est, i_ref):
+        rs, re_ = rel(ref[1][ir], ref[2][ir])
+        es, ee = rel(est[1][ie], est[2][ie])
+        for Tr, Te in ((rs, es), (re_, ee)):
+            E = np.linalg.inv(Tr) @ Te
+            trans.append(np.linalg.norm(E[:3, 3]))
+            rot.append(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1))))
+            reproj.append(np.mean(np.linalg.norm(project(np.linalg.inv(Te)) - project(np.linalg.inv(Tr)), axis=1)))
+    return {
+        "n_matched": int(len(i_est)),
+        "translation_m": statistics(np.array(trans)),
+        "rotation_deg": statistics(np.array(rot)),
+        "reprojection_px": statistics(np.array(reproj)),
+    }

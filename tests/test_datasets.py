@@ -1,0 +1,210 @@
+"""Loaders (TUM, KITTI, EuRoC, DSO, image folder) on real and hand-made sequences, and bad input:
+each bad file gives a one-line error naming the file, exit status 1, never a traceback."""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import shutil
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from mbavo_jax.datasets import open_sequence
+from mbavo_jax.errors import DataError
+
+from .conftest import shared_dataset
+
+W, H = 32, 24
+
+
+def mbavo(*args):
+    return subprocess.run([sys.executable, "-m", "mbavo_jax.cli", *map(str, args)], capture_output=True, text=True)
+
+
+def make_tum(root: pathlib.Path, n=4, depth=True) -> pathlib.Path:
+    rng = np.random.default_rng(0)
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    stamps = 10.0 + np.arange(n) / 30
+    with open(root / "rgb.txt", "w") as f, open(root / "depth.txt", "w") as g:
+        for t in stamps:
+            cv2.imwrite(str(root / "rgb" / f"{t:.6f}.png"), rng.integers(0, 255, (H, W, 3), dtype=np.uint8))
+            cv2.imwrite(str(root / "depth" / f"{t:.6f}.png"), np.full((H, W), 10000, np.uint16))
+            f.write(f"{t:.6f} rgb/{t:.6f}.png\n")
+            g.write(f"{t + 0.002:.6f} depth/{t:.6f}.png\n")
+    if not depth:
+        (root / "depth.txt").unlink()
+    (root / "camera.yaml").write_text(f"fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\nwidth: {W}\nheight: {H}\n")
+    with open(root / "groundtruth.txt", "w") as f:
+        for t in stamps:
+            f.write(f"{t:.6f} 0 0 {t - 10:.4f} 0 0 0 1\n")
+    return root
+
+
+def test_tum_real_clip():
+    seq = open_sequence(shared_dataset("tum_fr1_xyz_head37"))
+    assert seq.kind == "tum" and len(seq) == 37 and seq.has_depth
+    assert (seq.camera.width, seq.camera.height) == (640, 480) and float(seq.camera.fx) == pytest.approx(517.3)
+    f = seq[10]
+    assert f.image.shape == (480, 640) and f.image.dtype == np.float32 and 0 <= f.image.min() and f.image.max() <= 1
+    assert f.depth.shape == (480, 640) and np.nanmedian(f.depth) > 0.3 and np.isnan(f.depth).any()
+    assert seq.groundtruth[1].shape == (3000, 7)
+
+
+def test_kitti_real_clip():
+    seq = open_sequence(shared_dataset("kitti07_head160"))
+    assert seq.kind == "kitti" and len(seq) == 160 and not seq.has_depth
+    assert float(seq.camera.fx) == pytest.approx(707.0912) and float(seq.camera.cy) == pytest.approx(183.1104)
+    assert seq[159].image.shape == (370, 1226)
+    assert seq.groundtruth[1].shape == (160, 7)
+
+
+def test_loading_is_lazy(tmp_path, monkeypatch):
+    root = make_tum(tmp_path / "seq", n=5)
+    import mbavo_jax.datasets.loaders as loaders
+
+    calls = []
+    real = loaders.read_image_gray
+    monkeypatch.setattr(loaders, "read_image_gray", lambda p: calls.append(p) or real(p))
+    seq = open_sequence(root)
+    assert calls == [] and len(seq) == 5
+    seq[3]
+    assert len(calls) == 1
+
+
+def test_tum_association_and_exposure(tmp_path):
+    root = make_tum(tmp_path / "seq")
+    seq = open_sequence(root)
+    assert seq.has_depth and seq[2].depth[0, 0] == pytest.approx(2.0)
+
+
+def test_dso_folder(tmp_path):
+    root = tmp_path / "dso"
+    (root / "images").mkdir(parents=True)
+    for i in range(3):
+        cv2.imwrite(str(root / "images" / f"{i:05d}.png"), np.full((H, W), 100 + i, np.uint8))
+    (root / "times.txt").write_text("".join(f"{i:05d} {1.0 + i * 0.05:.6f} {12.5:.3f}\n" for i in range(3)))
+    (root / "camera.txt").write_text(f"Pinhole 0.5 0.6 0.5 0.5 0\n{W} {H}\ncrop\n{W} {H}\n")
+    seq = open_sequence(root)
+    assert seq.kind == "dso" and len(seq) == 3
+    assert float(seq.camera.fx) == pytest.approx(0.5 * W) and float(seq.camera.cx) == pytest.approx(0.5 * W - 0.5)
+    assert seq[1].exposure == pytest.approx(0.0125)
+
+
+def test_euroc_folder(tmp_path):
+    cam = tmp_path / "euroc" / "mav0" / "cam0"
+    (cam / "data").mkdir(parents=True)
+    lines = ["#timestamp [ns],filename"]
+    for i in range(3):
+        name = f"{1403636579763555584 + i * 50000000}.png"
+        cv2.imwrite(str(cam / "data" / name), np.full((H, W), 50, np.uint8))
+        lines.append(f"{name[:-4]},{name}")
+    (cam / "data.csv").write_text("\n".join(lines) + "\n")
+    (cam / "sensor.yaml").write_text(
+        "%YAML:1.0\nsensor_type: camera\nT_BS:\n  cols: 4\n  rows: 4\n  data: [1,0,0,0.1, 0,1,0,0, 0,0,1,0, 0,0,0,1]\n"
+        f"resolution: [{W}, {H}]\nintrinsics: [30.0, 31.0, 15.5, 11.5]\n"
+    )
+    gt = tmp_path / "euroc" / "mav0" / "state_groundtruth_estimate0"
+    gt.mkdir(parents=True)
+    (gt / "data.csv").write_text("#t,px,py,pz,qw,qx,qy,qz\n1403636579763555584,1,2,3,1,0,0,0\n1403636579813555584,1,2,3.1,1,0,0,0\n")
+    seq = open_sequence(tmp_path / "euroc")
+    assert seq.kind == "euroc" and len(seq) == 3 and float(seq.camera.fy) == 31.0
+    assert seq.timestamps[1] - seq.timestamps[0] == pytest.approx(0.05)
+    np.testing.assert_allclose(seq.groundtruth[1][0], [1.1, 2, 3, 0, 0, 0, 1], atol=1e-6)  # body pose ∘ T_BS
+
+
+def test_image_folder(tmp_path):
+    root = tmp_path / "imgs"
+    root.mkdir()
+    for i in range(2):
+        cv2.imwrite(str(root / f"{i}.png"), np.zeros((H, W), np.uint8))
+    (root / "camera.yaml").write_text(f"fx: 30\nfy: 30\ncx: 15\ncy: 11\nwidth: {W}\nheight: {H}\nfps: 10\n")
+    seq = open_sequence(root)
+    assert seq.kind == "folder" and list(seq.timestamps) == [0.0, 0.1]
+
+
+# ------------------------------------------------------------------------------------ bad input
+
+
+def _corrupt(root: pathlib.Path, what: str):
+    if what == "missing_image":
+        next((root / "rgb").glob("*.png")).unlink()
+        return "rgb/"
+    if what == "tum_columns":
+        with open(root / "groundtruth.txt", "a") as f:
+            f.write("10.5 0 0 0 0 0 1\n")
+        return "groundtruth.txt:5"
+    if what == "unsorted":
+        lines = (root / "rgb.txt").read_text().splitlines()
+        lines[1], lines[2] = lines[2], lines[1]
+        (root / "rgb.txt").write_text("\n".join(lines) + "\n")
+        return "rgb.txt:3"
+    if what == "duplicate":
+        lines = (root / "groundtruth.txt").read_text().splitlines()
+        lines.insert(1, lines[0])
+        (root / "groundtruth.txt").write_text("\n".join(lines) + "\n")
+        return "groundtruth.txt:2"
+    if what == "depth_size":
+        p = next((root / "depth").glob("*.png"))
+        cv2.imwrite(str(p), np.full((H // 2, W // 2), 5000, np.uint16))
+        return p.name
+    if what == "depth_dtype":
+        p = next((root / "depth").glob("*.png"))
+        cv2.imwrite(str(p), np.full((H, W), 50, np.uint8))
+        return p.name
+    if what == "corrupt_png":
+        p = sorted((root / "rgb").glob("*.png"))[1]
+        p.write_bytes(b"\x89PNG\r\n\x1a\nthis is not a png")
+        return p.name
+    if what == "camera_negative":
+        (root / "camera.yaml").write_text(f"fx: -30\nfy: 30\ncx: 15.5\ncy: 11.5\nwidth: {W}\nheight: {H}\n")
+        return "camera.yaml"
+    if what == "camera_missing_key":
+        (root / "camera.yaml").write_text(f"fx: 30\ncx: 15.5\ncy: 11.5\nwidth: {W}\nheight: {H}\n")
+        return "camera.yaml"
+    if what == "quaternion":
+        with open(root / "groundtruth.txt", "a") as f:
+            f.write("10.5 0 0 0 0 0 0 2\n")
+        return "groundtruth.txt:5"
+    raise ValueError(what)
+
+
+@pytest.mark.parametrize(
+    "what",
+    ["missing_image", "tum_columns", "unsorted", "duplicate", "depth_size", "depth_dtype", "corrupt_png",
+     "camera_negative", "camera_missing_key", "quaternion"],
+)
+def test_bad_input_is_one_line_error(tmp_path, what):
+    root = make_tum(tmp_path / "seq")
+    where = _corrupt(root, what)
+    r = mbavo("info", root, "--check")
+    assert r.returncode == 1, r
+    assert "Traceback" not in r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("mbavo: error: ") and where in lines[0], r.stderr
+
+
+def test_missing_sequence_and_no_overlap(tmp_path):
+    r = mbavo("info", tmp_path / "nope")
+    assert r.returncode == 1 and "not found" in r.stderr and "Traceback" not in r.stderr
+    a, b = tmp_path / "a.txt", tmp_path / "b.txt"
+    a.write_text("".join(f"{t} 0 0 {t} 0 0 0 1\n" for t in range(5)))
+    b.write_text("".join(f"{t + 100} 0 0 {t} 0 0 0 1\n" for t in range(5)))
+    r = mbavo("eval", "ape", a, b)
+    assert r.returncode == 1 and "no overlapping timestamps" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    r = mbavo("eval", "ape", a, tmp_path / "missing.txt")
+    assert r.returncode == 1 and "missing.txt" in r.stderr and "not found" in r.stderr
+
+
+def test_image_size_change_mid_sequence(tmp_path):
+    root = make_tum(tmp_path / "seq", depth=False)
+    p = sorted((root / "rgb").glob("*.png"))[2]
+    cv2.imwrite(str(p), np.zeros((H + 2, W), np.uint8))
+    with pytest.raises(DataError, match="image size"):
+        open_sequence(root)[2]
+    info = json.loads(mbavo("info", root, "--format", "json").stdout)
+    assert info["frames"] == 4

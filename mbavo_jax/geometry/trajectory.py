@@ -30,6 +30,11 @@ class ExposureTrajectory(eqx.Module):
     def middle(self) -> Pose:
         return interpolate(self.start, self.end, 0.5)
 
+    def normalized(self) -> "ExposureTrajectory":
+        """Both quaternions rescaled to unit norm (updates drift by rounding; the analytic
+        Jacobians of the supplement assume |q| = 1 exactly)."""
+        return ExposureTrajectory(self.start.normalized(), self.end.normalized())
+
     def plus(self, delta: Float[Array, "12"]) -> "ExposureTrajectory":
         """Local update of both poses: ``delta = [Δr_start, Δt_start, Δr_end, Δt_end]``."""
         return ExposureTrajectory(self.start.plus(delta[:6]), self.end.plus(delta[6:12]))

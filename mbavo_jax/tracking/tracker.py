@@ -52,26 +52,38 @@ class TrackerConfig:
     """All tracker settings in one place (defaults follow the released MBA-VO code where it is known).
 
     levels: pyramid levels (coarse-to-fine); points: max points per level (fine → coarse);
-    n: virtual frames (64 in the paper); n_mode: "fixed" or "adaptive" (n from the predicted blur,
-    per level, rounded up to a power of two within [n_min, n]); jacobian: "autodiff" or "analytic";
+    n: virtual frames at full resolution (64 in the paper); n_per_level: "halve" uses
+    max(n / 2^level, n_coarse_min) on coarser levels (their blur is 2^level times shorter in pixels,
+    so the sampling density per blur pixel is unchanged), "same" uses n on every level;
+    n_mode: "fixed" or "adaptive" (n from the predicted blur, per level, rounded up to a power of two
+    within [n_min, n], ``n_per_blur_px`` frames per pixel of blur); jacobian: "analytic" (the supplement's corrected formulas) or "autodiff";
     huber: Huber threshold on intensities in [0, 1]; max_steps: LM steps per level (fine → coarse);
     outlier_sigma: patches whose cost exceeds mean + k·std are dropped (all but the coarsest level);
     affine: estimate the brightness gain and offset; blur_aware: False turns the model into classic
-    direct alignment (start = end, one virtual frame).
+    direct alignment (start = end, one virtual frame); response_gamma: photometric calibration —
+    images are linearised as I^γ before tracking, because blur averages *radiance* (γ = 1: images
+    are used as they are; ``mbavo synth`` sequences record their γ in camera.yaml);
+    blur_prior: weight of a weak prior that keeps the exposure's relative motion (start⁻¹·end) near
+    the initial guess, in intensity units per pixel of image motion (σ_I / σ_px; 1e-2 was tuned on
+    the sharp and strong presets, scripts/bench_tracking.py):
+    without it the start/end split is unobservable on sharp frames and drifts with noise.
     """
 
     levels: int = 4
-    points: tuple[int, ...] = (512, 384, 256, 128)
-    cell: tuple[int, ...] = (20, 14, 10, 7)
+    points: tuple[int, ...] = (384, 256, 192, 128)
+    cell: tuple[int, ...] = (30, 21, 15, 10)
     grad_threshold: float = 8.0 / 255.0
     n: int = 64
+    n_per_level: str = "halve"
+    n_coarse_min: int = 8
     n_mode: str = "fixed"
     n_min: int = 2
-    jacobian: str = "autodiff"
+    n_per_blur_px: float = 2.0
+    jacobian: str = "analytic"
     huber: float = 9.0 / 255.0
-    max_steps: tuple[int, ...] = (12, 16, 20, 30)
-    rtol: float = 1e-4
-    atol: float = 1e-6
+    max_steps: tuple[int, ...] = (8, 10, 12, 20)
+    rtol: float = 1e-3
+    atol: float = 1e-4
     outlier_sigma: float = 2.5
     affine: bool = True
     blur_aware: bool = True
@@ -79,12 +91,18 @@ class TrackerConfig:
     good_rms: float = 0.06
     lost_rms: float = 0.12
     hypotheses: bool = True
+    response_gamma: float = 1.0
+    blur_prior: float = 1e-2
 
     def __post_init__(self):
         if self.n_mode not in ("fixed", "adaptive"):
             raise ValueError(f"n_mode must be 'fixed' or 'adaptive', got {self.n_mode!r}")
+        if self.n_per_level not in ("halve", "same"):
+            raise ValueError(f"n_per_level must be 'halve' or 'same', got {self.n_per_level!r}")
         if self.jacobian not in ("autodiff", "analytic"):
             raise ValueError(f"jacobian must be 'autodiff' or 'analytic', got {self.jacobian!r}")
+        if not self.response_gamma > 0:
+            raise ValueError(f"response_gamma must be positive, got {self.response_gamma}")
         if self.n < 1:
             raise ValueError(f"n must be >= 1, got {self.n}")
         for name in ("points", "cell", "max_steps"):
@@ -110,7 +128,7 @@ class Keyframe:
         if dep.shape != img.shape:
             raise ValueError(f"keyframe depth shape {dep.shape} differs from image shape {img.shape}")
         images, cams, pts = [], [], []
-        im, dp = img, dep
+        im, dp = linearize(img, config.response_gamma), dep
         for level in range(config.levels):
             if level:
                 im = np.asarray(downsample(jnp.asarray(im)))
@@ -126,9 +144,22 @@ class Keyframe:
 
 @dataclasses.dataclass(frozen=True)
 class TrackResult:
+    """``trajectory`` (T_ref_start, T_ref_end), ``status`` and ``diagnostics`` (per-level n, LM steps,
+    RMS photometric error, valid residuals; the hypothesis used; affine (a, b); predicted blur; time).
+    Unpacks as a tuple: ``traj, status, diag = track(...)``."""
+
     trajectory: ExposureTrajectory
     status: Status
     diagnostics: dict
+
+    def __iter__(self):
+        return iter((self.trajectory, self.status, self.diagnostics))
+
+
+def linearize(image, gamma: float):
+    """Photometric calibration by an inverse gamma response: I → clip(I, 0, 1)^γ."""
+    image = np.clip(np.asarray(image, np.float32), 0.0, 1.0)
+    return image if gamma == 1.0 else image ** np.float32(gamma)
 
 
 def _frame_pyramid(image, levels):
@@ -138,23 +169,28 @@ def _frame_pyramid(image, levels):
     return out
 
 
-def predicted_blur_px(keyframe: Keyframe, traj: ExposureTrajectory, level: int = 0) -> float:
-    """Mean image distance (level pixels) between the keyframe points seen at the start and end poses."""
-    pts = keyframe.points[level]
-    cam = keyframe.cameras[level]
-    if pts.count == 0:
-        return 0.0
-    P = jax.vmap(cam.backproject)(jnp.asarray(pts.pixels[pts.valid]), jnp.asarray(pts.depths[pts.valid]))
+@jax.jit
+def _mean_endpoint_distance(cam, pixels, depths, valid, traj: ExposureTrajectory):
+    P = jax.vmap(cam.backproject)(pixels, depths)
     ps = jax.vmap(lambda p: cam.project(traj.start.inverse().apply(p)))(P)
     pe = jax.vmap(lambda p: cam.project(traj.end.inverse().apply(p)))(P)
-    d = np.linalg.norm(np.asarray(ps - pe), axis=1)
-    return float(np.mean(d[np.isfinite(d)])) if np.isfinite(d).any() else 0.0
+    d = jnp.linalg.norm(ps - pe, axis=1)
+    ok = valid & jnp.isfinite(d)
+    return jnp.sum(jnp.where(ok, d, 0.0)) / jnp.maximum(ok.sum(), 1)
+
+
+def predicted_blur_px(keyframe: Keyframe, traj: ExposureTrajectory, level: int = 0) -> float:
+    """Mean image distance (level pixels) between the keyframe points seen at the start and end poses
+    (fixed shapes: compiled once per sequence)."""
+    pts = keyframe.points[level]
+    d = _mean_endpoint_distance(keyframe.cameras[level], jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid), traj)
+    return float(d)
 
 
 def choose_n(blur_px: float, config: TrackerConfig) -> int:
-    """Adaptive n (supplement §6): at least one virtual frame per pixel of blur, a power of two in
-    [n_min, n]."""
-    need = max(config.n_min, int(np.ceil(max(blur_px, 0.0))))
+    """Adaptive n (supplement §6: n should exceed the blur kernel size): ``n_per_blur_px`` virtual
+    frames per pixel of predicted blur, rounded up to a power of two in [n_min, n]."""
+    need = max(config.n_min, int(np.ceil(max(blur_px, 0.0) * config.n_per_blur_px)))
     return int(min(config.n, 2 ** int(np.ceil(np.log2(need)))))
 
 
@@ -184,6 +220,7 @@ def _level_setup(ref_image, cam, cur_image, pixels, depths, pvalid, anchor: Expo
 @partial(jax.jit, static_argnames=("n", "jacobian", "max_steps", "rigid", "affine", "use_outliers"))
 def _solve_level(
     ref_image, cam, cur_image, pixels, depths, pvalid, anchor, affine_ab, huber, outlier_sigma, rtol, atol,
+    prior_blur, prior_weight,
     *, n, jacobian, max_steps, rigid, affine, use_outliers,
 ):
     rays, d, observed, mask = _level_setup(ref_image, cam, cur_image, pixels, depths, pvalid, anchor, outlier_sigma, use_outliers)
@@ -209,10 +246,24 @@ def _solve_level(
         keep = cost <= mean + outlier_sigma * std
         problem = eqx.tree_at(lambda p: p.mask, problem, problem.mask & jnp.repeat(keep, npat))
 
-    def fn(z, prob):
-        return robust(residual(expand(z), prob), huber)
+    # weak prior on the exposure's relative motion start⁻¹·end (6-vector [ω, t]), in pixels
+    zmed = jnp.nanmedian(jnp.where(pvalid, depths, jnp.nan))
+    scale = jnp.concatenate([jnp.full(3, cam.fx), jnp.full(3, cam.fx / jnp.where(jnp.isfinite(zmed), zmed, 1.0))])
+    sqrt_valid = jnp.sqrt(jnp.maximum(problem.mask.sum(), 1).astype(dtype))
 
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.QR())
+    def blur_vector(traj):
+        rel = traj.start.inverse().compose(traj.end)
+        return jnp.concatenate([quat.log(rel.q), rel.t])
+
+    def fn(z, prob):
+        photometric = robust(residual(expand(z), prob), huber)
+        if rigid:
+            return photometric
+        prior = prior_weight * sqrt_valid * scale * (blur_vector(prob.anchor.plus(expand(z)[:12])) - prior_blur)
+        return jnp.concatenate([photometric, prior])
+
+    # RMS norm: the max-norm default asks every one of thousands of residuals to settle below atol
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, norm=optx.rms_norm, linear_solver=lx.QR())
     z0 = jnp.zeros(m + (2 if affine else 0), dtype)
     sol = optx.least_squares(fn, solver, z0, args=problem, max_steps=max_steps, throw=False)
     y = expand(sol.value)
@@ -221,7 +272,7 @@ def _solve_level(
     rms = jnp.sqrt(jnp.sum(r * r) / jnp.maximum(nvalid, 1))
     r_init, _, valid0 = residuals_and_jacobian(expand(z0), problem, with_jacobian=False)
     rms0 = jnp.sqrt(jnp.sum(r_init**2) / jnp.maximum(valid0.sum(), 1))
-    traj = anchor.plus(y[:12])
+    traj = anchor.plus(y[:12]).normalized()
     converged = sol.result == optx.RESULTS.successful
     return traj, y[12:14], rms, rms0, nvalid, converged, sol.stats["num_steps"]
 
@@ -232,9 +283,11 @@ def _solve_level(
 def _n_for_level(config: TrackerConfig, blur0: float, level: int) -> int:
     if not config.blur_aware:
         return 1
-    if config.n_mode == "fixed":
+    if config.n_mode == "adaptive":
+        return choose_n(blur0 / 2**level, config)
+    if config.n_per_level == "same":
         return config.n
-    return choose_n(blur0 / 2**level, config)
+    return max(config.n >> level, min(config.n_coarse_min, config.n))
 
 
 def _coarse_to_fine(keyframe: Keyframe, pyr, init: ExposureTrajectory, config: TrackerConfig, blur0: float):
@@ -245,13 +298,15 @@ def _coarse_to_fine(keyframe: Keyframe, pyr, init: ExposureTrajectory, config: T
     if rigid:  # classic direct alignment: one pose, start = end = the initial mid-exposure pose
         mid = init.middle()
         traj = ExposureTrajectory(mid, mid)
+    rel0 = init.start.inverse().compose(init.end)
+    prior_blur = jnp.concatenate([quat.log(rel0.q), rel0.t])
     for level in reversed(range(config.levels)):
         pts = keyframe.points[level]
         n = _n_for_level(config, blur0, level)
         out = _solve_level(
             keyframe.images[level], keyframe.cameras[level], pyr[level],
             jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid),
-            traj, ab, config.huber, config.outlier_sigma, config.rtol, config.atol,
+            traj, ab, config.huber, config.outlier_sigma, config.rtol, config.atol, prior_blur, config.blur_prior,
             n=n, jacobian=config.jacobian, max_steps=config.max_steps[level], rigid=rigid,
             affine=config.affine, use_outliers=level < config.levels - 1 and config.outlier_sigma > 0,
         )
@@ -278,24 +333,25 @@ def _status(per_level, config: TrackerConfig) -> Status:
     return Status.CONVERGED if all(p["converged"] for p in per_level) else Status.MAX_STEPS
 
 
-def motion_hypotheses(init: ExposureTrajectory, reference: ExposureTrajectory | None = None) -> list:
-    """DSO-style alternatives to the constant-velocity guess: zero, half and double motion relative
-    to ``reference`` (default: the identity), and small rotations about each axis."""
-    ref = reference if reference is not None else ExposureTrajectory(Pose.identity(), Pose.identity())
-    out = [("zero motion", ref)]
+def motion_hypotheses(init: ExposureTrajectory) -> list:
+    """DSO-style alternatives to the constant-velocity guess. Each moves the mid-exposure pose M of
+    ``init`` — to the identity (zero motion), M^½ (half), M² (double) and M with ±2° about each axis —
+    and keeps the guess's blur (start and end about M as in ``init``)."""
+    from .motion import pose_power
 
-    def scale(p_ref: Pose, p: Pose, k: float) -> Pose:
-        rel = p_ref.inverse().compose(p)
-        return p_ref.compose(Pose(quat.exp(k * quat.log(rel.q)), k * rel.t))
+    mid = init.middle()
+    to_start = mid.inverse().compose(init.start)
+    to_end = mid.inverse().compose(init.end)
 
-    for k, name in ((0.5, "half motion"), (2.0, "double motion")):
-        out.append((name, ExposureTrajectory(scale(ref.start, init.start, k), scale(ref.end, init.end, k))))
+    def around(m: Pose):
+        return ExposureTrajectory(m.compose(to_start), m.compose(to_end))
+
+    out = [("zero motion", around(Pose.identity())), ("half motion", around(pose_power(mid, 0.5))), ("double motion", around(pose_power(mid, 2.0)))]
     for axis in range(3):
         for sign in (1.0, -1.0):
-            d = np.zeros(6, np.float32)
-            d[axis] = sign * np.deg2rad(2.0)
-            rot = Pose(quat.exp(jnp.asarray(d[:3])), jnp.zeros(3))
-            out.append((f"rotation {'xyz'[axis]}{'+' if sign > 0 else '-'}", ExposureTrajectory(init.start.compose(rot), init.end.compose(rot))))
+            r = np.zeros(3, np.float32)
+            r[axis] = sign * np.deg2rad(2.0)
+            out.append((f"rotation {'xyz'[axis]}{'+' if sign > 0 else '-'}", around(mid.compose(Pose(quat.exp(jnp.asarray(r)), jnp.zeros(3))))))
     return out
 
 
@@ -316,11 +372,15 @@ def track(keyframe: Keyframe, frame, init: ExposureTrajectory | None = None, con
         init = ExposureTrajectory(Pose.identity(), Pose.identity())
     if not np.all(np.isfinite(image)):
         image = np.nan_to_num(image, nan=0.0, posinf=1.0, neginf=0.0)
+    # a constant image (black, saturated, textureless) cannot constrain anything
+    if float(np.std(image)) < 1e-4:
+        diagnostics = {"points": keyframe.n_points(0), "hypothesis": "none", "levels": [], "blur_px": 0.0, "seconds": time.perf_counter() - t0}
+        return TrackResult(init, Status.TOO_FEW_POINTS, diagnostics)
     diagnostics = {"points": keyframe.n_points(0), "hypothesis": "initial guess"}
     if keyframe.n_points(0) < max(8, config.min_valid // 8):
         diagnostics.update(levels=[], seconds=time.perf_counter() - t0, blur_px=0.0)
         return TrackResult(init, Status.TOO_FEW_POINTS, diagnostics)
-    pyr = _frame_pyramid(image, config.levels)
+    pyr = _frame_pyramid(linearize(image, config.response_gamma), config.levels)
     blur0 = predicted_blur_px(keyframe, init)
     traj, ab, per_level = _coarse_to_fine(keyframe, pyr, init, config, blur0)
     status = _status(per_level, config)

@@ -1,0 +1,21 @@
+"""The blur-aware tracker (points, residuals with two Jacobian paths, coarse-to-fine LM)."""
+
+from .motion import constant_velocity_guess, pose_power
+from .points import PATTERN, LevelPoints, select_points
+from .tracker import Keyframe, Status, TrackerConfig, TrackResult, choose_n, motion_hypotheses, predicted_blur_px, track
+
+__all__ = [
+    "PATTERN",
+    "LevelPoints",
+    "select_points",
+    "Keyframe",
+    "Status",
+    "TrackerConfig",
+    "TrackResult",
+    "track",
+    "choose_n",
+    "predicted_blur_px",
+    "motion_hypotheses",
+    "constant_velocity_guess",
+    "pose_power",
+]

@@ -1,0 +1,13 @@
+#!/usr/bin/env python3
+"""Tracking benchmark (same as `mbavo bench tracking`): ours n=1 / n=64 autodiff / n=64 analytic /
+adaptive n vs Open3D and OpenCV RGB-D odometry on the same frames of a generated 640x480 sequence.
+
+Open3D is optional: `pip install -e ".[bench]"` and, on Debian, `apt-get install -y libusb-1.0-0`.
+"""
+
+import sys
+
+from mbavo_jax.cli import main
+
+if __name__ == "__main__":
+    sys.exit(main(["bench", "tracking", *sys.argv[1:]]))

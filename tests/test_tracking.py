@@ -1,0 +1,182 @@
+"""The blur-aware tracker: Jacobian paths, accuracy vs the blur-unaware tracker, status, shapes.
+
+Runs at 160x120 so the suite stays fast on 2 cores; the 640x480 accuracy and speed numbers come
+from ``scripts/bench_tracking.py`` (docs/benchmarks.md)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mbavo_jax.datasets import open_sequence
+from mbavo_jax.geometry import ExposureTrajectory, Pose
+from mbavo_jax.io import read_image_gray
+from mbavo_jax.synthetic import SynthConfig, generate_sequence
+from mbavo_jax.synthetic.generator import PRESETS
+from mbavo_jax.tracking import Keyframe, Status, TrackerConfig, choose_n, constant_velocity_guess, track
+from mbavo_jax.tracking import tracker as tracker_mod
+from mbavo_jax.tracking.residuals import LevelProblem, make_residual_fn, residuals_and_jacobian
+
+SMALL = TrackerConfig(levels=3, points=(192, 128, 64), cell=(10, 7, 5), response_gamma=2.2, max_steps=(10, 12, 20))
+
+
+def _sequence(tmp_path_factory, preset, frames=7):
+    out = tmp_path_factory.mktemp(preset)
+    cfg = SynthConfig(**{**PRESETS[preset], "frames": frames, "width": 160, "height": 120, "subframes": min(32, PRESETS[preset].get("subframes", 32)), "seed": 3, "real_textures": False})
+    generate_sequence(cfg, out, progress=None)
+    return open_sequence(out)
+
+
+@pytest.fixture(scope="module")
+def strong(tmp_path_factory):
+    return _sequence(tmp_path_factory, "strong")
+
+
+@pytest.fixture(scope="module")
+def sharp_seq(tmp_path_factory):
+    return _sequence(tmp_path_factory, "none")
+
+
+def P(v):
+    return Pose.from_vector(jnp.asarray(v, jnp.float32))
+
+
+def case(seq, k, config):
+    """Keyframe = sharp frame k with true depth; frame k+1 blurry; constant-velocity init; ground truth."""
+    _, mids = seq.groundtruth
+    _, S, E = seq.exposure_paths
+    sharp = read_image_gray(seq[k].path.replace("/rgb/", "/sharp/"))
+    kf = Keyframe.create(sharp, seq[k].depth, seq.camera, config)
+    T_w_ref = P(mids[k])
+    tau = seq.exposures[0]
+    init = constant_velocity_guess(T_w_ref, P(mids[k - 1]), P(mids[k]), 1 / 30, tau)
+    gt = ExposureTrajectory(T_w_ref.inverse().compose(P(S[k + 1])), T_w_ref.inverse().compose(P(E[k + 1])))
+    return kf, seq[k + 1].image, init, gt
+
+
+def endpoint_error(kf, est, gt):
+    pts, cam = kf.points[0], kf.cameras[0]
+    X = jax.vmap(cam.backproject)(jnp.asarray(pts.pixels[pts.valid]), jnp.asarray(pts.depths[pts.valid]))
+    errs = []
+    for a, b in ((est.start, gt.start), (est.end, gt.end)):
+        pa = jax.vmap(lambda p: cam.project(a.inverse().apply(p)))(X)
+        pb = jax.vmap(lambda p: cam.project(b.inverse().apply(p)))(X)
+        errs.append(np.linalg.norm(np.asarray(pa - pb), axis=1))
+    return float(np.median(np.concatenate(errs)))
+
+
+def _problem(seq, jacobian, n=8, dtype=jnp.float32):
+    kf, frame, init, _ = case(seq, 2, SMALL)
+    pts = kf.points[0]
+    cam = kf.cameras[0]
+    rays, d, obs, mask = tracker_mod._level_setup(
+        kf.images[0], cam, jnp.asarray(frame ** 2.2), jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid), init, 2.5, False
+    )
+    cast = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, t)
+    return LevelProblem(cast(kf.images[0]), cast(cam), cast(init).normalized(), cast(rays), cast(d), cast(obs), mask, n, jacobian)
+
+
+def test_structured_jacobians_match_plain_autodiff(strong):
+    """Both structured paths (per-virtual-pose rows chained through the trajectory Jacobian) equal
+    jax.jacfwd of the whole residual, in float64, away from y = 0 too."""
+    with jax.enable_x64(True):
+        y = jnp.asarray(np.random.default_rng(0).normal(scale=[1e-3] * 12 + [0.05, 0.01]), jnp.float64)
+        ref = None
+        for jac in ("autodiff", "analytic"):
+            prob = _problem(strong, jac, dtype=jnp.float64)
+            plain = jax.jacfwd(lambda yy: residuals_and_jacobian(yy, prob, False)[0])(y)
+            r, J, valid = residuals_and_jacobian(y, prob, True)
+            assert int(valid.sum()) > 200
+            np.testing.assert_allclose(J, plain, atol=1e-8, rtol=1e-6)
+            # the custom JVP is what optimistix's linearize sees
+            f = make_residual_fn()
+            _, lin = jax.linearize(lambda yy: f(yy, prob), y)
+            np.testing.assert_allclose(jax.vmap(lin)(jnp.eye(14)).T, J, atol=1e-10)
+            ref = J if ref is None else ref
+            np.testing.assert_allclose(J, ref, atol=1e-8, rtol=1e-6)
+
+
+def test_blur_aware_beats_blur_unaware_on_strong_blur(strong):
+    errs = {"n64": [], "n1": []}
+    for k in (1, 3, 5):
+        for name, cfg in (("n64", SMALL), ("n1", dataclasses.replace(SMALL, blur_aware=False))):
+            kf, frame, init, gt = case(strong, k, cfg)
+            traj, status, diag = track(kf, frame, init, cfg)
+            assert status.ok, (name, k, status, diag)
+            errs[name].append(endpoint_error(kf, traj, gt))
+    med64, med1 = np.median(errs["n64"]), np.median(errs["n1"])
+    assert med64 < 0.3, errs  # ~5 px blur at 160x120
+    assert med1 > 4 * med64, errs
+
+
+def test_sharp_frames_n64_no_worse_than_n1(sharp_seq):
+    for k in (2, 4):
+        e = {}
+        for name, cfg in (("n64", SMALL), ("n1", dataclasses.replace(SMALL, blur_aware=False))):
+            kf, frame, init, gt = case(sharp_seq, k, cfg)
+            traj, status, _ = track(kf, frame, init, cfg)
+            assert status.ok
+            e[name] = endpoint_error(kf, traj, gt)
+        assert e["n64"] <= e["n1"] * 1.2 + 0.05, e
+
+
+def test_analytic_and_autodiff_paths_give_the_same_track(strong):
+    out = []
+    for jac in ("analytic", "autodiff"):
+        cfg = dataclasses.replace(SMALL, jacobian=jac)
+        kf, frame, init, gt = case(strong, 2, cfg)
+        traj, status, _ = track(kf, frame, init, cfg)
+        out.append(np.concatenate([np.asarray(traj.start.to_vector()), np.asarray(traj.end.to_vector())]))
+    np.testing.assert_allclose(out[0], out[1], atol=2e-4)
+
+
+def test_adaptive_n(strong, sharp_seq):
+    assert choose_n(0.2, TrackerConfig()) == 2 and choose_n(5.0, TrackerConfig()) == 16 and choose_n(500, TrackerConfig()) == 64
+    cfg = dataclasses.replace(SMALL, n_mode="adaptive")
+    kf, frame, init, gt = case(sharp_seq, 3, cfg)
+    _, status, diag = track(kf, frame, init, cfg)
+    assert status.ok and max(level["n"] for level in diag["levels"]) <= 2
+    e = {}
+    for name, c in (("adaptive", cfg), ("fixed", SMALL)):
+        kf, frame, init, gt = case(strong, 3, c)
+        traj, status, diag = track(kf, frame, init, c)
+        e[name] = endpoint_error(kf, traj, gt)
+    assert e["adaptive"] <= e["fixed"] + 0.1, e
+
+
+def test_status_never_raises(strong):
+    kf, frame, init, gt = case(strong, 2, SMALL)
+    black = track(kf, np.zeros_like(frame), init, SMALL)
+    assert black.status == Status.TOO_FEW_POINTS
+    noise = track(kf, np.random.default_rng(0).uniform(size=frame.shape).astype(np.float32), init, SMALL)
+    assert not noise.status.ok
+    nan = frame.copy()
+    nan[10:40, 10:40] = np.nan
+    r = track(kf, nan, init, SMALL)
+    assert np.all(np.isfinite(np.asarray(r.trajectory.start.t)))
+    empty = Keyframe.create(np.zeros_like(frame), np.full(frame.shape, np.nan, np.float32), strong.camera, SMALL)
+    assert track(empty, frame, init, SMALL).status == Status.TOO_FEW_POINTS
+
+
+def test_hypotheses_recover_from_a_bad_initial_guess(strong):
+    kf, frame, _, gt = case(strong, 4, SMALL)
+    bad_rot = Pose(jnp.asarray([0.0, np.sin(np.deg2rad(6)), 0.0, np.cos(np.deg2rad(6))], jnp.float32), jnp.zeros(3))
+    bad = ExposureTrajectory(gt.start.compose(bad_rot), gt.end.compose(bad_rot))
+    r = track(kf, frame, bad, SMALL)
+    assert r.status.ok and r.diagnostics["hypotheses_tried"] > 1
+    err = endpoint_error(kf, r.trajectory, gt)
+    assert err < 1.0, (err, r.diagnostics)
+
+
+def test_no_recompilation_after_the_first_frame(strong):
+    kf, frame, init, _ = case(strong, 1, SMALL)
+    track(kf, frame, init, SMALL)
+    before = tracker_mod._solve_level._cache_size()
+    for k in (2, 3, 4):
+        kf, frame, init, _ = case(strong, k, SMALL)  # a new keyframe: new points, same shapes
+        track(kf, frame, init, SMALL)
+    assert tracker_mod._solve_level._cache_size() == before

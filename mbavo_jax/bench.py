@@ -225,15 +225,192 @@ def format_tracking_table(s: dict) -> str:
     return "\n".join(lines)
 
 
-def main_tracking(args) -> int:
+def _bench_data(preset: str, args) -> pathlib.Path:
     from .synthetic import PRESETS, SynthConfig, generate_sequence
 
-    data = pathlib.Path(args.data) if args.data else None
-    if data is None or not (data / "exposure.txt").is_file():
-        data = data or pathlib.Path("runs") / f"bench_{args.preset}_{args.width}x{args.height}"
-        if not (data / "exposure.txt").is_file():
-            cfg = SynthConfig(**{**PRESETS[args.preset], "frames": args.frames + 2, "width": args.width, "height": args.height, "seed": args.seed})
-            generate_sequence(cfg, data, progress=None if args.quiet else sys.stderr)
-    res = run_tracking_benchmark(data, args.frames, peers=not args.no_peers, progress=None if args.quiet else sys.stderr)
-    print(json.dumps(res, indent=2) if args.format == "json" else format_tracking_table(res))
+    data = pathlib.Path("runs") / f"bench_{preset}_{args.width}x{args.height}_seed{args.seed}"
+    if not (data / "exposure.txt").is_file() or len(open_sequence(data)) < args.frames + 2:
+        cfg = SynthConfig(**{**PRESETS[preset], "frames": args.frames + 2, "width": args.width, "height": args.height, "seed": args.seed})
+        generate_sequence(cfg, data, progress=None if args.quiet else sys.stderr)
+    return data
+
+
+def main_tracking(args) -> int:
+    """``mbavo bench tracking``: one run per preset (default strong, then none), or ``--data DIR``."""
+    progress = None if args.quiet else sys.stderr
+    if args.data:
+        runs = {pathlib.Path(args.data).name: pathlib.Path(args.data)}
+    else:
+        runs = {p: _bench_data(p, args) for p in args.preset.split(",")}
+    results = {name: run_tracking_benchmark(data, args.frames, peers=not args.no_peers, progress=progress) for name, data in runs.items()}
+    if args.format == "json":
+        print(json.dumps(results if len(results) > 1 else next(iter(results.values())), indent=2))
+    else:
+        print("\n\n".join(f"[{name}]\n{format_tracking_table(r)}" for name, r in results.items()))
     return 0
+
+
+# ------------------------------------------------------------------------------ odometry benchmark
+
+
+def _open3d_odometry(seq, out: pathlib.Path, progress=None) -> dict:
+    """Frame-to-frame Open3D RGB-D odometry (hybrid term) chained into a trajectory; failed frames
+    are dropped (no pose) and the chain continues from the last good frame with constant velocity."""
+    import open3d as o3d
+
+    from .io import TrajectoryWriter
+
+    cam = seq.camera
+    intr = o3d.camera.PinholeCameraIntrinsic(cam.width, cam.height, float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy))
+    option = o3d.pipelines.odometry.OdometryOption()
+    jac = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
+
+    def rgbd(f):
+        color = o3d.geometry.Image(np.ascontiguousarray((np.clip(f.image, 0, 1) * 255).astype(np.uint8)))
+        d = o3d.geometry.Image(np.ascontiguousarray(np.nan_to_num(f.depth, nan=0.0).astype(np.float32)))
+        return o3d.geometry.RGBDImage.create_from_color_and_depth(color, d, depth_scale=1.0, depth_trunc=50.0, convert_rgb_to_intensity=True)
+
+    out.mkdir(parents=True, exist_ok=True)
+    writer = TrajectoryWriter(out / "trajectory.txt")
+    T_w = np.eye(4)
+    prev = rgbd(seq[0])
+    writer.write(seq.timestamps[0], np.asarray(Pose.from_matrix(jnp.asarray(T_w)).to_vector()))
+    vel = np.eye(4)  # T_prev_cur of the last step
+    drops, ms = 0, []
+    for i in range(1, len(seq)):
+        cur = rgbd(seq[i])
+        t0 = time.perf_counter()
+        ok, T_cur_prev, _ = o3d.pipelines.odometry.compute_rgbd_odometry(prev, cur, intr, np.linalg.inv(vel), jac, option)
+        ms.append(1000 * (time.perf_counter() - t0))
+        if ok:
+            vel = np.linalg.inv(T_cur_prev)
+            T_w = T_w @ vel
+            writer.write(seq.timestamps[i], np.asarray(Pose.from_matrix(jnp.asarray(T_w, jnp.float32)).to_vector()))
+            prev = cur
+        else:
+            drops += 1
+    writer.close()
+    return {"frames": len(seq), "dropped": drops, "median_ms": float(np.median(ms)) if ms else 0.0}
+
+
+def _deblur_quality(seq, run: pathlib.Path) -> dict:
+    """PSNR/SSIM of the deblurred keyframes (all but the first, which is used as it is) against the
+    generated sharp frames, and of the blurry input against the same."""
+    from .deblur import psnr, ssim
+
+    kf_dir = run / "keyframes"
+    rows = []
+    for p in sorted(kf_dir.glob("*.png"))[1:]:
+        stamp = float(p.stem)
+        k = int(np.argmin(np.abs(seq.timestamps - stamp)))
+        sharp_path = pathlib.Path(seq[k].path).parent.parent / "sharp" / pathlib.Path(seq[k].path).name
+        if not sharp_path.is_file():
+            continue
+        import cv2
+
+        ref = read_image_gray(sharp_path)
+        deb = cv2.imread(str(p), cv2.IMREAD_UNCHANGED).astype(np.float32) / 65535.0
+        rows.append((psnr(deb, ref), psnr(seq[k].image, ref), ssim(deb, ref), ssim(seq[k].image, ref)))
+    if not rows:
+        return {}
+    a = np.asarray(rows)
+    return {"keyframes": len(rows), "psnr_deblurred": float(a[:, 0].mean()), "psnr_blurry": float(a[:, 1].mean()),
+            "ssim_deblurred": float(a[:, 2].mean()), "ssim_blurry": float(a[:, 3].mean())}
+
+
+def run_odometry_benchmark(sequences: dict, out_root, progress=sys.stderr) -> dict:
+    """ATE (SE3) and frame drops for ours n=64, n=1, adaptive n and Open3D on each sequence."""
+    from . import evaluation as ev
+    from .io import read_tum_trajectory
+    from .odometry import OdometryConfig, run_odometry
+
+    out_root = pathlib.Path(out_root)
+    results = {}
+    for name, path in sequences.items():
+        seq = open_sequence(path)
+        gamma = float(seq.meta.get("response_gamma", 1.0))
+        base = TrackerConfig(response_gamma=gamma)
+        configs = {
+            "ours_n64": base,
+            "ours_n1": dataclasses.replace(base, blur_aware=False),
+            "ours_adaptive": dataclasses.replace(base, n_mode="adaptive"),
+        }
+        row = {}
+        t_gt, p_gt = seq.groundtruth
+        for method, cfg in configs.items():
+            run = out_root / name / method
+            if progress is not None:
+                progress.write(f"{name}: {method}\n")
+            t0 = time.perf_counter()
+            summ = run_odometry(seq, run, cfg, OdometryConfig(), progress=progress)
+            el = time.perf_counter() - t0
+            t_est, p_est = read_tum_trajectory(run / "trajectory.txt")
+            ape = ev.ape(t_gt, p_gt, t_est, p_est, align="se3", max_diff=0.02)
+            row[method] = {"ate_rmse_m": ape["rmse"], "frame_drop_rate": summ["frame_drop_rate"], "keyframes": summ["keyframes"],
+                           "seconds_per_frame": el / max(summ["frames"], 1)}
+            if method == "ours_n64":
+                row[method]["deblur"] = _deblur_quality(seq, run)
+        try:
+            if progress is not None:
+                progress.write(f"{name}: open3d\n")
+            o3d_sum = _open3d_odometry(seq, out_root / name / "open3d")
+            t_est, p_est = read_tum_trajectory(out_root / name / "open3d" / "trajectory.txt")
+            ape = ev.ape(t_gt, p_gt, t_est, p_est, align="se3", max_diff=0.02)
+            row["open3d"] = {"ate_rmse_m": ape["rmse"], "frame_drop_rate": o3d_sum["dropped"] / o3d_sum["frames"],
+                             "seconds_per_frame": o3d_sum["median_ms"] / 1000}
+        except ImportError as exc:
+            row["open3d"] = {"error": f"open3d unavailable: {exc}"}
+        blur = yaml.safe_load((pathlib.Path(path) / "synth.yaml").read_text()).get("mean_blur_px") if (pathlib.Path(path) / "synth.yaml").is_file() else None
+        results[name] = {"mean_blur_px": blur, "frames": len(seq), "methods": row}
+    return results
+
+
+def format_odometry_table(res: dict) -> str:
+    methods = ["ours_n64", "ours_n1", "ours_adaptive", "open3d"]
+    lines = [f"{'sequence':<14} {'blur px':>8} " + " ".join(f"{m + ' ATE m':>18} {'drop':>5}" for m in methods)]
+    for name, r in res.items():
+        cells = []
+        for m in methods:
+            x = r["methods"].get(m, {})
+            cells.append(f"{x.get('ate_rmse_m', float('nan')):>18.4f} {x.get('frame_drop_rate', float('nan')):>5.2f}")
+        blur = r["mean_blur_px"]
+        lines.append(f"{name:<14} {blur if blur is not None else float('nan'):>8.1f} " + " ".join(cells))
+    lines.append("")
+    lines.append(f"{'sequence':<14} {'s/frame n64':>12} {'n1':>8} {'adaptive':>9} {'open3d':>8}   deblurred keyframes: PSNR (blurry) / SSIM (blurry)")
+    for name, r in res.items():
+        m = r["methods"]
+        d = m["ours_n64"].get("deblur") or {}
+        deb = f"{d['psnr_deblurred']:.2f} dB ({d['psnr_blurry']:.2f}) / {d['ssim_deblurred']:.3f} ({d['ssim_blurry']:.3f}), {d['keyframes']} kf" if d else "-"
+        lines.append(
+            f"{name:<14} {m['ours_n64']['seconds_per_frame']:>12.3f} {m['ours_n1']['seconds_per_frame']:>8.3f} {m['ours_adaptive']['seconds_per_frame']:>9.3f} "
+            f"{m.get('open3d', {}).get('seconds_per_frame', float('nan')):>8.3f}   {deb}"
+        )
+    return "\n".join(lines)
+
+
+def main_odometry(args) -> int:
+    """``mbavo bench odometry``: generated sequences at each blur preset plus the blurred TUM clip."""
+    from .synthetic import blur_real_sequence
+
+    progress = None if args.quiet else sys.stderr
+    root = pathlib.Path(args.out)
+    seqs = {}
+    for preset in args.presets.split(","):
+        a = argparse_ns(frames=args.frames - 2, width=args.width, height=args.height, seed=args.seed, quiet=args.quiet)
+        seqs[preset] = _bench_data(preset, a)
+    if args.tum:
+        tum_src = pathlib.Path(args.tum)
+        tum_out = pathlib.Path("runs") / "bench_tum_blurred"
+        if not (tum_out / "exposure.txt").is_file():
+            blur_real_sequence(open_sequence(tum_src), tum_out, blur_px=20.0, progress=progress)
+        seqs["tum_blurred"] = tum_out
+    res = run_odometry_benchmark(seqs, root, progress=progress)
+    print(json.dumps(res, indent=2) if args.format == "json" else format_odometry_table(res))
+    (root / "results.json").write_text(json.dumps(res, indent=2))
+    return 0
+
+
+def argparse_ns(**kw):
+    import argparse
+
+    return argparse.Namespace(**kw)

@@ -132,6 +132,135 @@ def _cmd_info(args) -> int:
     return 0
 
 
+def _tracker_setup(args, seq):
+    from .odometry import load_config
+
+    overrides = list(args.set or [])
+    gamma = seq.meta.get("response_gamma") if hasattr(seq, "meta") else None
+    if gamma is not None and not any(o.startswith("tracker.response_gamma=") for o in overrides):
+        overrides.insert(0, f"tracker.response_gamma={float(gamma)}")  # photometric calibration from camera.yaml
+    return load_config(args.config, overrides)
+
+
+def _evaluate_run(seq, out, quiet=False) -> dict:
+    import numpy as np
+
+    from . import evaluation as ev
+    from .evaluation import plots
+    from .io import read_tum_trajectory
+
+    res = {}
+    if seq.groundtruth is None or not (out / "trajectory.txt").is_file():
+        return res
+    t_est, p_est = read_tum_trajectory(out / "trajectory.txt")
+    t_gt, p_gt = seq.groundtruth
+    if len(t_est) < 3:
+        return res
+    try:
+        ape = ev.ape(t_gt, p_gt, t_est, p_est, align="se3", max_diff=0.02)
+    except UserError:
+        return res
+    res["ate_rmse_m"] = ape["rmse"]
+    res["ate_median_m"] = ape["median"]
+    res["frame_drop_rate"] = ev.frame_drop_rate(seq.timestamps, t_est, 0.02)
+    i_est, i_ref = ev.associate(t_est, t_gt, 0.02)
+    from .evaluation.metrics import _align, pose_matrices
+
+    T_al = _align(pose_matrices(p_gt[i_ref]), pose_matrices(p_est[i_est]), "se3")[0]
+    plots.plot_trajectories(out / "trajectory.png", p_gt[i_ref, :3], T_al[:, :3, 3], f"ATE rmse {ape['rmse']:.4f} m (SE3)")
+    plots.plot_error_over_time(out / "ape_over_time.png", t_est[i_est], np.asarray(ape["errors"]), "APE over time")
+    return res
+
+
+def _cmd_track(args) -> int:
+    import pathlib
+
+    from .datasets import open_sequence
+    from .odometry import run_odometry
+
+    seq = open_sequence(args.sequence, args.kind)
+    tracker, odo = _tracker_setup(args, seq)
+    out = pathlib.Path(args.out)
+    summary = run_odometry(seq, out, tracker, odo, resume=args.resume, max_frames=args.max_frames, progress=None if args.quiet else sys.stderr)
+    summary.update(_evaluate_run(seq, out))
+    summary["out"] = str(out)
+    if args.format == "json":
+        print(json.dumps(summary, indent=2))
+    else:
+        for k, v in summary.items():
+            print(f"{k:>16}: {v:.4f}" if isinstance(v, float) else f"{k:>16}: {v}")
+    return 0
+
+
+def _cmd_deblur(args) -> int:
+    import pathlib
+
+    import cv2
+    import jax.numpy as jnp
+    import numpy as np
+
+    from .datasets import open_sequence
+    from .deblur import deblur, psnr, ssim
+    from .geometry import ExposureTrajectory, Pose
+    from .io import read_exposure_file, read_image_gray
+
+    seq = open_sequence(args.sequence)
+    if not 0 <= args.frame < len(seq):
+        raise UserError(f"--frame {args.frame} out of range (the sequence has {len(seq)} frames)")
+    frame = seq[args.frame]
+    if frame.depth is None:
+        raise UserError(f"{seq.path}: deblurring needs depth")
+    source = pathlib.Path(args.exposure) if args.exposure else pathlib.Path(seq.path) / "exposure.txt"
+    stamps, starts, ends = read_exposure_file(source)
+    j = int(np.argmin(np.abs(stamps - frame.timestamp)))
+    if abs(stamps[j] - frame.timestamp) > 0.01:
+        raise UserError(f"{source}: no exposure path within 0.01 s of frame {args.frame} ({frame.timestamp:.6f})")
+    P = lambda v: Pose.from_vector(jnp.asarray(v, jnp.float32))
+    traj = ExposureTrajectory(P(starts[j]), P(ends[j]))
+    gamma = float(seq.meta.get("response_gamma", 1.0))
+    sharp = deblur(frame.image, frame.depth, seq.camera, traj, args.n, args.iterations, args.regularization, gamma)
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    name = f"{frame.timestamp:.6f}.png"
+    cv2.imwrite(str(out / name), np.clip(sharp * 255, 0, 255).astype(np.uint8))
+    res = {"frame": args.frame, "output": str(out / name)}
+    ref_path = pathlib.Path(frame.path).parent.parent / "sharp" / pathlib.Path(frame.path).name
+    if ref_path.is_file():
+        ref = read_image_gray(ref_path)
+        res.update(psnr_deblurred=psnr(sharp, ref), psnr_blurry=psnr(frame.image, ref), ssim_deblurred=ssim(sharp, ref), ssim_blurry=ssim(frame.image, ref))
+        cv2.imwrite(str(out / f"triptych_{name}"), np.clip(np.concatenate([frame.image, sharp, ref], 1) * 255, 0, 255).astype(np.uint8))
+    print(json.dumps(res, indent=2) if args.format == "json" else "\n".join(f"{k:>16}: {v}" for k, v in res.items()))
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    import pathlib
+
+    from .datasets import open_sequence
+    from .odometry import run_odometry
+    from .synthetic import PRESETS, SynthConfig, generate_sequence
+
+    out = pathlib.Path(args.out)
+    data = out / "sequence"
+    progress = None if args.quiet else sys.stderr
+    if not (data / "exposure.txt").is_file():
+        cfg = SynthConfig(**{**PRESETS[args.preset], "frames": args.frames, "width": args.width, "height": args.height, "seed": args.seed})
+        print(f"generating a {args.preset}-blur sequence: {args.frames} frames {args.width}x{args.height} -> {data}", flush=True)
+        generate_sequence(cfg, data, progress=progress)
+    seq = open_sequence(data)
+    args.set, args.config = args.set or [], args.config
+    tracker, odo = _tracker_setup(args, seq)
+    run = out / "track"
+    print(f"tracking with n={tracker.n} virtual frames -> {run}", flush=True)
+    summary = run_odometry(seq, run, tracker, odo, progress=progress)
+    summary.update(_evaluate_run(seq, run))
+    print(
+        f"tracked {summary['tracked']}/{summary['frames']} frames, {summary['keyframes']} keyframes, "
+        f"ATE rmse {summary.get('ate_rmse_m', float('nan')):.4f} m; plots: {run / 'trajectory.png'}, {run / 'ape_over_time.png'}"
+    )
+    return 0
+
+
 def _print_result(res: dict, fmt: str, extra_keys, nested=()) -> None:
     if fmt == "json":
         print(json.dumps(res, indent=2))
@@ -177,18 +306,56 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=_cmd_synth)
 
-    p = sub.add_parser("bench", help="benchmarks: 'tracking' (ours n=1/64/adaptive vs Open3D and OpenCV RGB-D odometry)")
-    p.add_argument("what", choices=["tracking"])
+    p = sub.add_parser("bench", help="benchmarks: 'tracking' (frame pairs, vs Open3D/OpenCV) and 'odometry' (whole sequences, ATE)")
+    p.add_argument("what", choices=["tracking", "odometry"])
     p.add_argument("--data", help="a generated sequence (default: generate runs/bench_<preset>_<w>x<h>)")
     p.add_argument("--frames", type=int, default=20, help="frame pairs to track (default 20)")
-    p.add_argument("--preset", choices=["none", "mild", "strong", "extreme"], default="strong")
+    p.add_argument("--preset", default="strong,none", help="comma-separated blur presets to generate and run (default strong,none)")
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-peers", action="store_true", help="skip Open3D and OpenCV")
+    p.add_argument("--presets", default="none,mild,strong,extreme", help="odometry: blur presets (default all four)")
+    p.add_argument("--tum", default="../shared/data/tum_fr1_xyz_head37", help="odometry: real RGB-D clip to blur ('' to skip)")
+    p.add_argument("--out", default="runs/bench_odometry", help="odometry: output folder")
     p.add_argument("--format", choices=["table", "json"], default="table")
     p.add_argument("-q", "--quiet", action="store_true")
-    p.set_defaults(func=lambda a: __import__("mbavo_jax.bench", fromlist=["main_tracking"]).main_tracking(a))
+    p.set_defaults(func=lambda a: getattr(__import__("mbavo_jax.bench", fromlist=["x"]), f"main_{a.what}")(a))
+
+    p = sub.add_parser("track", help="motion-blur-aware RGB-D visual odometry over a sequence")
+    p.add_argument("sequence", help="sequence folder (TUM RGB-D, mbavo synth output, DSO with depth/)")
+    p.add_argument("--out", required=True, help="output folder (trajectory.txt, exposure.txt, keyframes.txt, plots)")
+    p.add_argument("--config", help="YAML with 'tracker:' and 'odometry:' sections (see configs/)")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override a config value, e.g. tracker.n=32 (repeatable)")
+    p.add_argument("--resume", action="store_true", help="continue after the last frame already in OUT/trajectory.txt")
+    p.add_argument("--max-frames", type=int, help="stop after this many frames")
+    p.add_argument("--kind", default="auto", choices=["auto", "tum", "kitti", "euroc", "dso", "folder"])
+    p.add_argument("--format", choices=["table", "json"], default="table")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_track)
+
+    p = sub.add_parser("deblur", help="deblur one frame with its exposure path and depth; PSNR/SSIM vs sharp/ if present")
+    p.add_argument("sequence")
+    p.add_argument("--frame", type=int, required=True, help="frame index")
+    p.add_argument("--exposure", help="exposure file (default: the sequence's exposure.txt; or a 'mbavo track' output)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--n", type=int, default=32, help="virtual frames of the blur operator (default 32)")
+    p.add_argument("--iterations", type=int, default=30, help="conjugate-gradient iterations (default 30)")
+    p.add_argument("--regularization", type=float, default=2e-2, help="weight of the gradient penalty (default 2e-2)")
+    p.add_argument("--format", choices=["table", "json"], default="table")
+    p.set_defaults(func=_cmd_deblur)
+
+    p = sub.add_parser("demo", help="generate a short blurry sequence, track it, print the ATE and write plots (no downloads)")
+    p.add_argument("--out", default="runs/demo")
+    p.add_argument("--preset", choices=["none", "mild", "strong", "extreme"], default="strong")
+    p.add_argument("--frames", type=int, default=40)
+    p.add_argument("--width", type=int, default=320)
+    p.add_argument("--height", type=int, default=240)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--config", help="YAML config (see configs/)")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE")
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("info", help="describe a sequence (layout, camera, depth, ground truth); --check reads every frame")
     p.add_argument("sequence")

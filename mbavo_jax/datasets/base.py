@@ -49,6 +49,7 @@ class Sequence:
     exposure_paths: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     has_depth: bool = False
     kind: str = ""
+    meta: dict = dataclasses.field(default_factory=dict)  # e.g. camera.yaml extras: response_gamma
 
     def __len__(self) -> int:
         return len(self.timestamps)

@@ -100,7 +100,7 @@ def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02) 
         exp = None if exposures is None else float(exposures[i])
         return Frame(i, float(stamps[i]), img, camera, depth, exp, str(img_path))
 
-    return Sequence(root.name, root, camera, stamps, load, exposures, gt, exp_paths, depth_names is not None, "tum")
+    return Sequence(root.name, root, camera, stamps, load, exposures, gt, exp_paths, depth_names is not None, "tum", cam_info)
 
 
 def _kitti_camera(calib_path, image_path) -> PinholeCamera:

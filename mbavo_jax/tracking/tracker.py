@@ -63,10 +63,15 @@ class TrackerConfig:
     direct alignment (start = end, one virtual frame); response_gamma: photometric calibration —
     images are linearised as I^γ before tracking, because blur averages *radiance* (γ = 1: images
     are used as they are; ``mbavo synth`` sequences record their γ in camera.yaml);
-    blur_prior: weight of a weak prior that keeps the exposure's relative motion (start⁻¹·end) near
-    the initial guess, in intensity units per pixel of image motion (σ_I / σ_px; 1e-2 was tuned on
-    the sharp and strong presets, scripts/bench_tracking.py):
-    without it the start/end split is unobservable on sharp frames and drifts with noise.
+    blur_prior, blur_prior_min_rad, blur_prior_rel: a weak Gaussian prior keeps the exposure's
+    relative motion (start⁻¹·end, rotation and translation / median depth, in radians) near the
+    initial guess b₀, with σ = blur_prior_min_rad + blur_prior_rel·|b₀| and the photometric noise
+    ``blur_prior`` (intensity units) as its scale: a frame expected sharp (b₀ = 0, e.g. exposure 0)
+    keeps start ≈ end, a blurred one is free to move by ~20 % of its blur. Without it the start/end
+    split is unobservable on sharp frames and drifts with noise. blur_prior = 0 switches it off.
+    good_nrms, lost_nrms: thresholds on the residual RMS normalised by the contrast (std) of the
+    observed pixels: above good_nrms the motion hypotheses are tried, above lost_nrms the frame is
+    lost (≈1.4 for an unrelated image).
     """
 
     levels: int = 4
@@ -88,11 +93,13 @@ class TrackerConfig:
     affine: bool = True
     blur_aware: bool = True
     min_valid: int = 60
-    good_rms: float = 0.06
-    lost_rms: float = 0.12
+    good_nrms: float = 0.5
+    lost_nrms: float = 1.0
     hypotheses: bool = True
     response_gamma: float = 1.0
-    blur_prior: float = 1e-2
+    blur_prior: float = 0.01
+    blur_prior_min_rad: float = 5e-4
+    blur_prior_rel: float = 0.2
 
     def __post_init__(self):
         if self.n_mode not in ("fixed", "adaptive"):
@@ -220,7 +227,7 @@ def _level_setup(ref_image, cam, cur_image, pixels, depths, pvalid, anchor: Expo
 @partial(jax.jit, static_argnames=("n", "jacobian", "max_steps", "rigid", "affine", "use_outliers"))
 def _solve_level(
     ref_image, cam, cur_image, pixels, depths, pvalid, anchor, affine_ab, huber, outlier_sigma, rtol, atol,
-    prior_blur, prior_weight,
+    prior_blur, prior_sigma_intensity, prior_min_rad, prior_rel,
     *, n, jacobian, max_steps, rigid, affine, use_outliers,
 ):
     rays, d, observed, mask = _level_setup(ref_image, cam, cur_image, pixels, depths, pvalid, anchor, outlier_sigma, use_outliers)
@@ -246,10 +253,11 @@ def _solve_level(
         keep = cost <= mean + outlier_sigma * std
         problem = eqx.tree_at(lambda p: p.mask, problem, problem.mask & jnp.repeat(keep, npat))
 
-    # weak prior on the exposure's relative motion start⁻¹·end (6-vector [ω, t]), in pixels
+    # weak prior on the exposure's relative motion start⁻¹·end (6-vector [ω, t/z̄]), in radians
     zmed = jnp.nanmedian(jnp.where(pvalid, depths, jnp.nan))
-    scale = jnp.concatenate([jnp.full(3, cam.fx), jnp.full(3, cam.fx / jnp.where(jnp.isfinite(zmed), zmed, 1.0))])
+    scale = jnp.concatenate([jnp.ones(3, dtype), jnp.full(3, 1.0 / jnp.where(jnp.isfinite(zmed), zmed, 1.0))])
     sqrt_valid = jnp.sqrt(jnp.maximum(problem.mask.sum(), 1).astype(dtype))
+    prior_weight = prior_sigma_intensity / (prior_min_rad + prior_rel * jnp.linalg.norm(scale * prior_blur))
 
     def blur_vector(traj):
         rel = traj.start.inverse().compose(traj.end)
@@ -270,11 +278,13 @@ def _solve_level(
     r, _, valid = residuals_and_jacobian(y, problem, with_jacobian=False)
     nvalid = valid.sum()
     rms = jnp.sqrt(jnp.sum(r * r) / jnp.maximum(nvalid, 1))
+    obs_mean = jnp.sum(jnp.where(valid, problem.observed, 0.0)) / jnp.maximum(nvalid, 1)
+    obs_std = jnp.sqrt(jnp.sum(jnp.where(valid, (problem.observed - obs_mean) ** 2, 0.0)) / jnp.maximum(nvalid, 1))
     r_init, _, valid0 = residuals_and_jacobian(expand(z0), problem, with_jacobian=False)
     rms0 = jnp.sqrt(jnp.sum(r_init**2) / jnp.maximum(valid0.sum(), 1))
     traj = anchor.plus(y[:12]).normalized()
     converged = sol.result == optx.RESULTS.successful
-    return traj, y[12:14], rms, rms0, nvalid, converged, sol.stats["num_steps"]
+    return traj, y[12:14], rms, rms0, nvalid, converged, sol.stats["num_steps"], rms / jnp.maximum(obs_std, 1e-6)
 
 
 # ----------------------------------------------------------------------------------- public API
@@ -307,12 +317,13 @@ def _coarse_to_fine(keyframe: Keyframe, pyr, init: ExposureTrajectory, config: T
             keyframe.images[level], keyframe.cameras[level], pyr[level],
             jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid),
             traj, ab, config.huber, config.outlier_sigma, config.rtol, config.atol, prior_blur, config.blur_prior,
+            config.blur_prior_min_rad, config.blur_prior_rel,
             n=n, jacobian=config.jacobian, max_steps=config.max_steps[level], rigid=rigid,
             affine=config.affine, use_outliers=level < config.levels - 1 and config.outlier_sigma > 0,
         )
-        new_traj, ab, rms, rms0, nvalid, converged, steps = out
+        new_traj, ab, rms, rms0, nvalid, converged, steps, nrms = out
         per_level.append(
-            dict(level=level, n=n, rms=float(rms), rms_init=float(rms0), valid=int(nvalid), converged=bool(converged), steps=int(steps))
+            dict(level=level, n=n, rms=float(rms), rms_init=float(rms0), nrms=float(nrms), valid=int(nvalid), converged=bool(converged), steps=int(steps))
         )
         if not np.isfinite(float(rms)):
             return new_traj, ab, per_level
@@ -326,7 +337,7 @@ def _status(per_level, config: TrackerConfig) -> Status:
         return Status.DIVERGED
     if min(p["valid"] for p in per_level) < config.min_valid:
         return Status.TOO_FEW_POINTS
-    if fine["rms"] > config.lost_rms:
+    if not fine["nrms"] <= config.lost_nrms:
         return Status.LOST
     if fine["rms"] > 2.0 * max(fine["rms_init"], 1e-6) + 0.02:
         return Status.DIVERGED
@@ -385,22 +396,23 @@ def track(keyframe: Keyframe, frame, init: ExposureTrajectory | None = None, con
     traj, ab, per_level = _coarse_to_fine(keyframe, pyr, init, config, blur0)
     status = _status(per_level, config)
     tried = 1
-    if config.hypotheses and (not status.ok or per_level[-1]["rms"] > config.good_rms):
-        best = (per_level[-1]["rms"] if status.ok else np.inf, traj, ab, per_level, status, "initial guess")
+    if config.hypotheses and (not status.ok or per_level[-1]["nrms"] > config.good_nrms):
+        best = (per_level[-1]["nrms"] if status.ok else np.inf, traj, ab, per_level, status, "initial guess")
         for name, hyp in motion_hypotheses(init):
             tried += 1
             t2, ab2, pl2 = _coarse_to_fine(keyframe, pyr, hyp, config, predicted_blur_px(keyframe, hyp))
             st2 = _status(pl2, config)
-            score = pl2[-1]["rms"] if st2.ok else np.inf
+            score = pl2[-1]["nrms"] if st2.ok else np.inf
             if score < best[0]:
                 best = (score, t2, ab2, pl2, st2, name)
-            if st2.ok and score <= config.good_rms:
+            if st2.ok and score <= config.good_nrms:
                 break
         if np.isfinite(best[0]):
             _, traj, ab, per_level, status, diagnostics["hypothesis"] = best
     diagnostics.update(
         levels=per_level,
         rms=per_level[-1]["rms"],
+        nrms=per_level[-1]["nrms"],
         affine=[float(ab[0]), float(ab[1])],
         blur_px=blur0,
         hypotheses_tried=tried,

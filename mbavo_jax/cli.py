@@ -339,7 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frame", type=int, required=True, help="frame index")
     p.add_argument("--exposure", help="exposure file (default: the sequence's exposure.txt; or a 'mbavo track' output)")
     p.add_argument("--out", required=True)
-    p.add_argument("--n", type=int, default=32, help="virtual frames of the blur operator (default 32)")
+    p.add_argument("--n", type=int, default=0, help="virtual frames of the blur operator (default 0: one per pixel of blur, power of two, at most 64)")
     p.add_argument("--iterations", type=int, default=30, help="conjugate-gradient iterations (default 30)")
     p.add_argument("--regularization", type=float, default=2e-2, help="weight of the gradient penalty (default 2e-2)")
     p.add_argument("--format", choices=["table", "json"], default="table")

@@ -22,13 +22,48 @@ from .geometry.camera import PinholeCamera
 from .geometry.pose import Pose
 from .geometry.trajectory import ExposureTrajectory
 
-__all__ = ["deblur", "exposure_about_mid", "psnr", "ssim"]
+__all__ = ["deblur", "deblur_virtual_frames", "exposure_blur_px", "exposure_about_mid", "psnr", "ssim"]
 
 
 def exposure_about_mid(traj: ExposureTrajectory) -> ExposureTrajectory:
     """The exposure path relative to its own mid-exposure pose (T_mid_start, T_mid_end)."""
     mid_inv = traj.middle().inverse()
     return ExposureTrajectory(mid_inv.compose(traj.start), mid_inv.compose(traj.end))
+
+
+def exposure_blur_px(depth, camera: PinholeCamera, trajectory: ExposureTrajectory, stride: int = 8) -> tuple[float, float]:
+    """Blur length of a frame in pixels, (mean, 95th percentile): the image distance between each
+    pixel's scene point (every ``stride``-th pixel with valid depth) seen from the exposure's start
+    and end poses, the path expressed about its own mid pose. (0, 0) where no depth is valid."""
+    traj = exposure_about_mid(trajectory)
+    d = np.asarray(depth, np.float64)[::stride, ::stride]
+    v, u = np.mgrid[0 : depth.shape[0] : stride, 0 : depth.shape[1] : stride]
+    ok = np.isfinite(d) & (d > 0)
+    if not ok.any():
+        return 0.0, 0.0
+    K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]], np.float64)
+    pix = np.stack([u[ok], v[ok], np.ones(ok.sum())], 0)
+    X = (np.linalg.inv(K) @ pix) * d[ok]
+
+    def project(T):
+        M = np.asarray(T.as_matrix(), np.float64)
+        Y = M[:3, :3].T @ (X - M[:3, 3:4])  # T maps the pose's camera to the mid camera
+        z = np.where(Y[2] > 1e-6, Y[2], np.nan)
+        return (K @ (Y / z))[:2]
+
+    dist = np.linalg.norm(project(traj.start) - project(traj.end), axis=0)
+    dist = dist[np.isfinite(dist)]
+    if dist.size == 0:
+        return 0.0, 0.0
+    return float(dist.mean()), float(np.percentile(dist, 95))
+
+
+def deblur_virtual_frames(blur_px: float, n_max: int = 64, n_min: int = 8) -> int:
+    """Virtual frames for deconvolving a blur of ``blur_px`` pixels (95th percentile): one per pixel
+    of blur so the blur operator's samples leave no gaps (gaps make the deconvolution ring), rounded
+    up to a power of two (few compiled programs) in [n_min, n_max]."""
+    need = max(n_min, int(np.ceil(max(blur_px, 0.0))))
+    return int(min(n_max, 2 ** int(np.ceil(np.log2(need)))))
 
 
 def _grad_ops(x):
@@ -81,14 +116,17 @@ def deblur(
     depth,
     camera: PinholeCamera,
     trajectory: ExposureTrajectory,
-    n: int = 32,
+    n: int = 0,
     iterations: int = 30,
     regularization: float = 2e-2,
     response_gamma: float = 1.0,
 ):
     """Sharp mid-exposure image of a blurry frame, given its depth (metres, NaN = none) and its
     exposure path (any reference frame: it is re-expressed about its own mid pose). Works in
-    linear radiance (``response_gamma``) and returns display intensities in [0, 1]."""
+    linear radiance (``response_gamma``) and returns display intensities in [0, 1]. ``n = 0``
+    chooses the virtual frames from the blur (:func:`deblur_virtual_frames`, at most 64)."""
+    if n <= 0:
+        n = deblur_virtual_frames(exposure_blur_px(depth, camera, trajectory)[1])
     traj = exposure_about_mid(trajectory)
     img = np.clip(np.asarray(blurry, np.float32), 0, 1) ** np.float32(response_gamma)
     d = np.asarray(depth, np.float32)

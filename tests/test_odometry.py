@@ -86,6 +86,11 @@ def test_config_errors():
         load_config(None, ["tracker=3"])
     with pytest.raises(ConfigError, match="n_mode"):
         load_config(None, ["tracker.n_mode=sometimes"])
+    with pytest.raises(ConfigError, match="tracker.n: expected an integer"):
+        load_config(None, ["tracker.n=3.5"])
+    with pytest.raises(ConfigError, match="expected a list"):
+        load_config(None, ["tracker.points=5"])
+    assert load_config(None, ["odometry.keyframe_max_blur_px=1e9"])[1].keyframe_max_blur_px == 1e9  # YAML reads 1e9 as a string
     tc, oc = load_config(pathlib.Path(__file__).parents[1] / "configs" / "default.yaml", ["tracker.n=16"])
     assert tc.n == 16 and oc.keyframe_flow == 0.1
 
@@ -132,3 +137,62 @@ def test_deblurring_improves_psnr_and_ssim(seq_dir):
         m[8:-8, 8:-8] = True
         gains.append((psnr(sharp, ref, m) - psnr(f.image, ref, m), ssim(sharp, ref) - ssim(f.image, ref)))
     assert all(g[0] > 1.0 and g[1] > 0.005 for g in gains), gains  # PSNR +1 dB, SSIM better
+
+
+def test_exposure_blur_px_and_deblur_virtual_frames():
+    """A sideways exposure of 0.1 m in front of a wall 2 m away blurs every pixel by fx·0.1/2 px."""
+    import jax.numpy as jnp
+
+    from mbavo_jax.deblur import deblur_virtual_frames, exposure_blur_px
+    from mbavo_jax.geometry import PinholeCamera
+
+    cam = PinholeCamera(200.0, 200.0, 80.0, 60.0, 160, 120)
+    depth = np.full((120, 160), 2.0, np.float32)
+    traj = ExposureTrajectory(Pose(jnp.array([0.0, 0, 0, 1]), jnp.array([-0.05, 0, 0])), Pose(jnp.array([0.0, 0, 0, 1]), jnp.array([0.05, 0, 0])))
+    mean, p95 = exposure_blur_px(depth, cam, traj)
+    assert abs(mean - 10.0) < 1e-3 and abs(p95 - 10.0) < 1e-3
+    assert exposure_blur_px(np.full_like(depth, np.nan), cam, traj) == (0.0, 0.0)
+    assert [deblur_virtual_frames(b) for b in (0.0, 3.0, 9.0, 16.0, 17.0, 44.0, 300.0)] == [8, 8, 16, 16, 32, 64, 64]
+    assert deblur_virtual_frames(300.0, n_max=32) == 32
+
+
+def test_odometry_benchmark_runs_every_method(tmp_path):
+    """`mbavo bench odometry`'s engine on a tiny sequence: every method gives a row, ours are finite."""
+    from mbavo_jax.bench import format_odometry_table, run_odometry_benchmark
+
+    cfg = SynthConfig(**{**PRESETS["strong"], "frames": 6, "width": 160, "height": 120, "subframes": 16, "seed": 3, "real_textures": False})
+    generate_sequence(cfg, tmp_path / "seq", progress=None)
+    small = dict(levels=3, points=(192, 128, 64), cell=(10, 7, 5), max_steps=(10, 12, 20))
+    res = run_odometry_benchmark({"strong": tmp_path / "seq"}, tmp_path / "bench", progress=None, tracker_overrides=small)
+    row = res["strong"]["methods"]
+    assert set(row) == {"ours_n64", "ours_n1", "ours_adaptive", "open3d", "open3d_color", "opencv"}
+    for m in ("ours_n64", "ours_n1", "ours_adaptive", "opencv"):
+        assert np.isfinite(row[m]["ate_rmse_m"]) and row[m]["frame_drop_rate"] == 0.0, (m, row[m])
+    assert row["ours_n64"]["ate_rmse_m"] < 0.02
+    table = format_odometry_table(res)
+    assert "ours_adaptive" in table and "opencv" in table and "deblurred keyframes" in table
+
+
+def test_missing_depth_mid_run_is_one_line_error_and_keeps_finished_poses(seq_dir, tmp_path):
+    bad = tmp_path / "bad"
+    shutil.copytree(seq_dir, bad)
+    (sorted((bad / "depth").glob("*.png"))[6]).unlink()
+    out = tmp_path / "run"
+    r = mbavo("track", bad, "--out", out, "-q", *SMALL)
+    assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1
+    assert r.stderr.startswith("mbavo: error:") and "depth image not found" in r.stderr
+    t, _ = read_tum_trajectory(out / "trajectory.txt")
+    assert len(t) == 6  # frames 0-5 were finished before frame 6 failed to load
+
+
+def test_keyframe_decision_uses_flow_visibility_and_blur():
+    from mbavo_jax.odometry import needs_keyframe
+
+    odo = OdometryConfig()  # flow 10 % of the width, blur rule off
+    assert not needs_keyframe(50.0, 0.9, 30.0, 640, odo)
+    assert needs_keyframe(70.0, 0.9, 30.0, 640, odo)
+    assert needs_keyframe(10.0, 0.5, 0.0, 640, odo)  # too few points in view
+    held = OdometryConfig(keyframe_max_blur_px=8.0)
+    assert needs_keyframe(70.0, 0.9, 5.0, 640, held) and not needs_keyframe(70.0, 0.9, 30.0, 640, held)
+    assert needs_keyframe(100.0, 0.9, 30.0, 640, held)  # beyond keyframe_flow_max (15 %): whatever the blur
+    assert needs_keyframe(10.0, 0.5, 30.0, 640, held)

@@ -74,7 +74,7 @@ def _problem(seq, jacobian, n=8, dtype=jnp.float32):
     pts = kf.points[0]
     cam = kf.cameras[0]
     rays, d, obs, mask = tracker_mod._level_setup(
-        kf.images[0], cam, jnp.asarray(frame ** 2.2), jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid), init, 2.5, False
+        cam, jnp.asarray(frame ** 2.2), jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid), init
     )
     cast = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, t)
     return LevelProblem(cast(kf.images[0]), cast(cam), cast(init).normalized(), cast(rays), cast(d), cast(obs), mask, n, jacobian)

@@ -204,7 +204,7 @@ def choose_n(blur_px: float, config: TrackerConfig) -> int:
 # ----------------------------------------------------------------------------------- one level
 
 
-def _level_setup(ref_image, cam, cur_image, pixels, depths, pvalid, anchor: ExposureTrajectory, outlier_sigma, use_outliers):
+def _level_setup(cam, cur_image, pixels, depths, pvalid, anchor: ExposureTrajectory):
     """Residual pixels of the current frame for this level's solve (fixed during the solve): each
     keyframe point projected with the middle pose, rounded, plus the 8-pixel pattern."""
     mid = anchor.middle().inverse()  # T_cur_ref at mid-exposure
@@ -230,7 +230,7 @@ def _solve_level(
     prior_blur, prior_sigma_intensity, prior_min_rad, prior_rel,
     *, n, jacobian, max_steps, rigid, affine, use_outliers,
 ):
-    rays, d, observed, mask = _level_setup(ref_image, cam, cur_image, pixels, depths, pvalid, anchor, outlier_sigma, use_outliers)
+    rays, d, observed, mask = _level_setup(cam, cur_image, pixels, depths, pvalid, anchor)
     problem = LevelProblem(ref_image, cam, anchor, rays, d, observed, mask, n, jacobian)
     residual = make_residual_fn()
     m = 6 if rigid else 12

@@ -339,10 +339,8 @@ def _deblur_quality(seq, run: pathlib.Path) -> dict:
         sharp_path = pathlib.Path(seq[k].path).parent.parent / "sharp" / pathlib.Path(seq[k].path).name
         if not sharp_path.is_file():
             continue
-        import cv2
-
         ref = read_image_gray(sharp_path)
-        deb = cv2.imread(str(p), cv2.IMREAD_UNCHANGED).astype(np.float32) / 65535.0
+        deb = read_image_gray(p)  # 16-bit keyframe image
         rows.append((psnr(deb, ref), psnr(seq[k].image, ref), ssim(deb, ref), ssim(seq[k].image, ref)))
     if not rows:
         return {}

@@ -24,7 +24,7 @@ from .geometry.trajectory import ExposureTrajectory, virtual_poses
 from .geometry.transfer import plane_transfer
 from .image import bilinear
 
-__all__ = ["reblur", "render_blurry", "sample_through_plane", "plane_depths_from_keyframe"]
+__all__ = ["reblur", "render_blurry", "sample_through_plane", "plane_depths_from_keyframe", "blur_lengths"]
 
 
 def sample_through_plane(keyframe, camera: PinholeCamera, T_ref_i: Pose, x, d):
@@ -124,3 +124,23 @@ def render_blurry(
     (total, valid), _ = jax.lax.scan(accumulate, init, poses)
     image = jnp.where(valid, total / n, 0.0)
     return image.reshape(h, w), valid.reshape(h, w)
+
+
+def blur_lengths(
+    camera: PinholeCamera, pixels: Float[Array, "N 2"], depths: Float[Array, " N"], trajectory: ExposureTrajectory
+) -> tuple[Float[Array, " N"], Bool[Array, " N"]]:
+    """Blur length of each point (pixels): the distance between its projections at the exposure's
+    start and end, for points at ``pixels``/``depths`` of the trajectory's reference frame. Returns
+    (lengths, valid); invalid (no depth, behind a camera) lengths are 0, never NaN."""
+    ok_d = jnp.isfinite(depths) & (depths > 0)
+    P = jax.vmap(camera.backproject)(pixels, jnp.where(ok_d, depths, 1.0))
+
+    def at(T: Pose):
+        X = jax.vmap(T.inverse().apply)(P)
+        front = X[:, 2] > 1e-6
+        return jax.vmap(camera.project)(jnp.where(front[:, None], X, jnp.array([0.0, 0.0, 1.0]))), front
+
+    xs, fs = at(trajectory.start)
+    xe, fe = at(trajectory.end)
+    valid = ok_d & fs & fe
+    return jnp.where(valid, jnp.linalg.norm(xs - xe, axis=1), 0.0), valid

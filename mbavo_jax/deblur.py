@@ -17,12 +17,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .blur import plane_depths_from_keyframe, render_blurry
+from .blur import blur_lengths, plane_depths_from_keyframe, render_blurry
 from .geometry.camera import PinholeCamera
 from .geometry.pose import Pose
 from .geometry.trajectory import ExposureTrajectory
 
-__all__ = ["deblur", "deblur_virtual_frames", "exposure_blur_px", "exposure_about_mid", "psnr", "ssim"]
+__all__ = ["deblur", "choose_deblur_n", "deblur_virtual_frames", "exposure_blur_px", "exposure_about_mid", "psnr", "ssim"]
 
 
 def exposure_about_mid(traj: ExposureTrajectory) -> ExposureTrajectory:
@@ -32,30 +32,19 @@ def exposure_about_mid(traj: ExposureTrajectory) -> ExposureTrajectory:
 
 
 def exposure_blur_px(depth, camera: PinholeCamera, trajectory: ExposureTrajectory, stride: int = 8) -> tuple[float, float]:
-    """Blur length of a frame in pixels, (mean, 95th percentile): the image distance between each
-    pixel's scene point (every ``stride``-th pixel with valid depth) seen from the exposure's start
-    and end poses, the path expressed about its own mid pose. (0, 0) where no depth is valid."""
-    traj = exposure_about_mid(trajectory)
-    d = np.asarray(depth, np.float64)[::stride, ::stride]
+    """Blur length of a frame in pixels, (mean, 95th percentile), over every ``stride``-th pixel with
+    valid depth (``blur.blur_lengths`` about the path's own mid pose). (0, 0) where no depth is valid."""
+    d = jnp.asarray(np.asarray(depth, np.float32)[::stride, ::stride])
     v, u = np.mgrid[0 : depth.shape[0] : stride, 0 : depth.shape[1] : stride]
-    ok = np.isfinite(d) & (d > 0)
-    if not ok.any():
+    pixels = jnp.asarray(np.stack([u.ravel(), v.ravel()], 1), jnp.float32)
+    lengths, valid = jax.device_get(_blur_lengths(camera, pixels, d.ravel(), exposure_about_mid(trajectory)))
+    lengths = lengths[valid]
+    if lengths.size == 0:
         return 0.0, 0.0
-    K = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]], np.float64)
-    pix = np.stack([u[ok], v[ok], np.ones(ok.sum())], 0)
-    X = (np.linalg.inv(K) @ pix) * d[ok]
+    return float(lengths.mean()), float(np.percentile(lengths, 95))
 
-    def project(T):
-        M = np.asarray(T.as_matrix(), np.float64)
-        Y = M[:3, :3].T @ (X - M[:3, 3:4])  # T maps the pose's camera to the mid camera
-        z = np.where(Y[2] > 1e-6, Y[2], np.nan)
-        return (K @ (Y / z))[:2]
 
-    dist = np.linalg.norm(project(traj.start) - project(traj.end), axis=0)
-    dist = dist[np.isfinite(dist)]
-    if dist.size == 0:
-        return 0.0, 0.0
-    return float(dist.mean()), float(np.percentile(dist, 95))
+_blur_lengths = jax.jit(blur_lengths)
 
 
 def deblur_virtual_frames(blur_px: float, n_max: int = 64, n_min: int = 8) -> int:
@@ -64,6 +53,11 @@ def deblur_virtual_frames(blur_px: float, n_max: int = 64, n_min: int = 8) -> in
     up to a power of two (few compiled programs) in [n_min, n_max]."""
     need = max(n_min, int(np.ceil(max(blur_px, 0.0))))
     return int(min(n_max, 2 ** int(np.ceil(np.log2(need)))))
+
+
+def choose_deblur_n(depth, camera: PinholeCamera, trajectory: ExposureTrajectory, n: int = 0, n_max: int = 64) -> int:
+    """``n`` if positive, else :func:`deblur_virtual_frames` of the frame's 95th-percentile blur."""
+    return n if n > 0 else deblur_virtual_frames(exposure_blur_px(depth, camera, trajectory)[1], n_max)
 
 
 def _grad_ops(x):
@@ -125,8 +119,7 @@ def deblur(
     exposure path (any reference frame: it is re-expressed about its own mid pose). Works in
     linear radiance (``response_gamma``) and returns display intensities in [0, 1]. ``n = 0``
     chooses the virtual frames from the blur (:func:`deblur_virtual_frames`, at most 64)."""
-    if n <= 0:
-        n = deblur_virtual_frames(exposure_blur_px(depth, camera, trajectory)[1])
+    n = choose_deblur_n(depth, camera, trajectory, n)
     traj = exposure_about_mid(trajectory)
     img = np.clip(np.asarray(blurry, np.float32), 0, 1) ** np.float32(response_gamma)
     d = np.asarray(depth, np.float32)

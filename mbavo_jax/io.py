@@ -203,16 +203,21 @@ def _cv2():
     return cv2
 
 
+def _imread(path, what: str) -> np.ndarray:
+    """``cv2.imread`` unchanged, with one-line errors for a missing or corrupt ``what`` file."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise DataError(path, f"{what} not found")
+    img = _cv2().imread(str(path), _cv2().IMREAD_UNCHANGED)
+    if img is None:
+        raise DataError(path, f"unreadable or corrupt {what}")
+    return img
+
+
 def read_image_gray(path) -> np.ndarray:
     """Read an image as float32 grey in [0, 1] (8- or 16-bit, grey or colour)."""
     cv2 = _cv2()
-
-    path = pathlib.Path(path)
-    if not path.is_file():
-        raise DataError(path, "image not found")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise DataError(path, "unreadable or corrupt image")
+    img = _imread(path, "image")
     if img.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         img = cv2.cvtColor(img, code)
@@ -222,14 +227,8 @@ def read_image_gray(path) -> np.ndarray:
 
 def read_depth_png(path, scale: float = 5000.0, shape: tuple[int, int] | None = None) -> np.ndarray:
     """16-bit depth PNG → metres (float32); 0 becomes NaN (no measurement)."""
-    cv2 = _cv2()
-
     path = pathlib.Path(path)
-    if not path.is_file():
-        raise DataError(path, "depth image not found")
-    d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if d is None:
-        raise DataError(path, "unreadable or corrupt depth image")
+    d = _imread(path, "depth image")
     if d.dtype != np.uint16 or d.ndim != 2:
         raise DataError(path, f"depth must be single-channel 16-bit, got {d.dtype} with shape {d.shape}")
     if shape is not None and d.shape != tuple(shape):

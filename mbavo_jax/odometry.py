@@ -28,11 +28,12 @@ import jax.numpy as jnp
 import numpy as np
 import yaml
 
-from .deblur import deblur, deblur_virtual_frames, exposure_blur_px
+from .blur import blur_lengths
+from .deblur import choose_deblur_n, deblur
 from .errors import ConfigError, DataError, MbavoError
 from .geometry import ExposureTrajectory, Pose
 from .io import TrajectoryWriter, read_exposure_file, read_tum_trajectory
-from .tracking import Keyframe, Status, TrackerConfig, constant_velocity_guess, predicted_blur_px, track
+from .tracking import Keyframe, Status, TrackerConfig, constant_velocity_guess, track
 
 __all__ = ["OdometryConfig", "run_odometry", "load_config", "needs_keyframe"]
 
@@ -149,25 +150,28 @@ def _pose_vec(p: Pose) -> np.ndarray:
 
 
 @jax.jit
-def _flow_visible(cam, pixels, depths, valid, T_ref_cur: Pose):
-    """Mean flow (pixels) of the keyframe's points into the current frame, and the fraction of them
-    that project inside it (fixed shapes)."""
+def _keyframe_stats(cam, pixels, depths, valid, traj: ExposureTrajectory):
+    """For the keyframe's points and a tracked exposure path: mean flow (pixels) into the current
+    frame at mid-exposure, the fraction of points that project inside it, and the mean blur length
+    (fixed shapes: one program per sequence, one device-to-host copy per frame)."""
     X = jax.vmap(cam.backproject)(pixels, depths)
-    T_cur_ref = T_ref_cur.inverse()
+    T_cur_ref = traj.middle().inverse()
     Xc = jax.vmap(T_cur_ref.apply)(X)
     x = jax.vmap(cam.project)(jnp.where(Xc[:, 2:3] > 1e-6, Xc, jnp.array([0.0, 0.0, 1.0])))
     inside = valid & (Xc[:, 2] > 1e-6) & jax.vmap(cam.in_image)(x)
-    flow = jnp.linalg.norm(x - pixels, axis=1)
-    cnt = jnp.maximum(inside.sum(), 1)
-    return jnp.sum(jnp.where(inside, flow, 0.0)) / cnt, inside.sum() / jnp.maximum(valid.sum(), 1)
+    flow = jnp.sum(jnp.where(inside, jnp.linalg.norm(x - pixels, axis=1), 0.0)) / jnp.maximum(inside.sum(), 1)
+    lengths, ok = blur_lengths(cam, pixels, depths, traj)
+    ok = ok & valid
+    blur = jnp.sum(jnp.where(ok, lengths, 0.0)) / jnp.maximum(ok.sum(), 1)
+    return flow, inside.sum() / jnp.maximum(valid.sum(), 1), blur
 
 
-def _mean_flow_and_visible(kf: Keyframe, T_ref_cur_mid: Pose) -> tuple[float, float]:
+def _flow_visible_blur(kf: Keyframe, traj: ExposureTrajectory) -> tuple[float, float, float]:
     pts, cam = kf.points[0], kf.cameras[0]
     if pts.count == 0:
-        return float("inf"), 0.0
-    flow, vis = _flow_visible(cam, jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid), T_ref_cur_mid)
-    return float(flow), float(vis)
+        return float("inf"), 0.0, 0.0
+    stats = _keyframe_stats(cam, jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid), traj)
+    return tuple(float(v) for v in jax.device_get(stats))
 
 
 def needs_keyframe(flow_px: float, visible: float, blur_px: float, width: int, odo: OdometryConfig) -> bool:
@@ -294,13 +298,12 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
                 mids = mids[-2:]
                 tracked += 1
                 consecutive_drops = 0
-                flow, visible = _mean_flow_and_visible(kf, traj.middle())
-                blur = predicted_blur_px(kf, traj)
+                flow, visible, blur = _flow_visible_blur(kf, traj)
                 need_kf = needs_keyframe(flow, visible, blur, seq.camera.width, odo)
                 if need_kf and frame.depth is not None:
                     sharp = frame.image
                     if blur > odo.deblur_min_blur_px and tracker.blur_aware:
-                        n_deblur = odo.deblur_n or deblur_virtual_frames(exposure_blur_px(frame.depth, seq.camera, traj)[1], odo.deblur_n_max)
+                        n_deblur = choose_deblur_n(frame.depth, seq.camera, traj, odo.deblur_n, odo.deblur_n_max)
                         sharp = deblur(frame.image, frame.depth, seq.camera, traj, n_deblur, odo.deblur_iterations, odo.deblur_regularization, tracker.response_gamma)
                         if triptychs < odo.triptychs:
                             from .blur import plane_depths_from_keyframe, render_blurry

@@ -22,6 +22,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
+from ..blur import blur_lengths
 from ..geometry import quaternion as quat
 from ..geometry.camera import PinholeCamera
 from ..geometry.pose import Pose
@@ -178,11 +179,8 @@ def _frame_pyramid(image, levels):
 
 @jax.jit
 def _mean_endpoint_distance(cam, pixels, depths, valid, traj: ExposureTrajectory):
-    P = jax.vmap(cam.backproject)(pixels, depths)
-    ps = jax.vmap(lambda p: cam.project(traj.start.inverse().apply(p)))(P)
-    pe = jax.vmap(lambda p: cam.project(traj.end.inverse().apply(p)))(P)
-    d = jnp.linalg.norm(ps - pe, axis=1)
-    ok = valid & jnp.isfinite(d)
+    d, ok = blur_lengths(cam, pixels, depths, traj)
+    ok = ok & valid
     return jnp.sum(jnp.where(ok, d, 0.0)) / jnp.maximum(ok.sum(), 1)
 
 

@@ -6,15 +6,14 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-__all__ = ["bilinear", "bilinear_many", "downsample", "pyramid", "gradient_magnitude"]
+__all__ = ["bilinear_cell", "bilinear", "bilinear_many", "downsample", "pyramid", "gradient_magnitude"]
 
 
-def bilinear(image: Float[Array, "H W"], x: Float[Array, "2"], border: float = 0.0):
-    """Bilinear sample of ``image`` at x = (col, row); pixel centres at integers.
-
-    Returns ``(value, valid)``; outside ``[border, size-1-border]`` the sample is masked: valid is
-    False and value is 0, with finite gradients (coordinates are clipped before use).
-    """
+def bilinear_cell(image: Float[Array, "H W"], x: Float[Array, "2"], border: float = 0.0):
+    """The pixel cell around x = (col, row) (pixel centres at integers): ``(valid, fu, fv, corners)``
+    with corners = (i00, i01, i10, i11) = image at (v0, u0), (v0, u0+1), (v0+1, u0), (v0+1, u0+1)
+    and (fu, fv) the position inside the cell. Outside ``[border, size-1-border]`` valid is False and
+    the cell is the top-left one (coordinates are replaced before use, so gradients stay finite)."""
     h, w = image.shape
     valid = (
         jnp.isfinite(x).all()
@@ -28,12 +27,17 @@ def bilinear(image: Float[Array, "H W"], x: Float[Array, "2"], border: float = 0
     v = jnp.clip(safe[1], 0.0, h - 1.0)
     u0 = jnp.clip(jnp.floor(u), 0, w - 2).astype(jnp.int32)
     v0 = jnp.clip(jnp.floor(v), 0, h - 2).astype(jnp.int32)
-    fu = u - u0
-    fv = v - v0
-    i00 = image[v0, u0]
-    i01 = image[v0, u0 + 1]
-    i10 = image[v0 + 1, u0]
-    i11 = image[v0 + 1, u0 + 1]
+    corners = (image[v0, u0], image[v0, u0 + 1], image[v0 + 1, u0], image[v0 + 1, u0 + 1])
+    return valid, u - u0, v - v0, corners
+
+
+def bilinear(image: Float[Array, "H W"], x: Float[Array, "2"], border: float = 0.0):
+    """Bilinear sample of ``image`` at x = (col, row); pixel centres at integers.
+
+    Returns ``(value, valid)``; outside ``[border, size-1-border]`` the sample is masked: valid is
+    False and value is 0, with finite gradients (coordinates are clipped before use).
+    """
+    valid, fu, fv, (i00, i01, i10, i11) = bilinear_cell(image, x, border)
     top = i00 + fu * (i01 - i00)
     bottom = i10 + fu * (i11 - i10)
     value = top + fv * (bottom - top)

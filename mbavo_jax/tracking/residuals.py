@@ -23,6 +23,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from ..geometry import quaternion as quat
+from ..image import bilinear_cell
 from ..geometry.camera import PinholeCamera
 from ..geometry.pose import Pose
 from ..geometry.trajectory import ExposureTrajectory, interpolate, virtual_times
@@ -48,14 +49,7 @@ class LevelProblem(eqx.Module):
 
 def bilinear_with_gradient(image, x):
     """Bilinear sample, its exact spatial derivative (the derivative of the interpolant), validity."""
-    h, w = image.shape
-    valid = jnp.isfinite(x).all() & (x[0] >= 0) & (x[1] >= 0) & (x[0] <= w - 1) & (x[1] <= h - 1)
-    safe = jnp.where(valid, x, jnp.zeros_like(x))
-    u0 = jnp.clip(jnp.floor(safe[0]), 0, w - 2).astype(jnp.int32)
-    v0 = jnp.clip(jnp.floor(safe[1]), 0, h - 2).astype(jnp.int32)
-    fu, fv = safe[0] - u0, safe[1] - v0
-    i00, i01 = image[v0, u0], image[v0, u0 + 1]
-    i10, i11 = image[v0 + 1, u0], image[v0 + 1, u0 + 1]
+    valid, fu, fv, (i00, i01, i10, i11) = bilinear_cell(image, x)
     top = i00 + fu * (i01 - i00)
     bottom = i10 + fu * (i11 - i10)
     value = top + fv * (bottom - top)

@@ -28,6 +28,7 @@ from ..geometry.camera import PinholeCamera
 from ..geometry.pose import Pose
 from ..geometry.trajectory import ExposureTrajectory
 from ..image import downsample
+from .geometric import depth_residuals, select_depth_points
 from .points import PATTERN, LevelPoints, downsample_depth, select_points
 from .residuals import LevelProblem, make_residual_fn, residuals_and_jacobian, robust
 
@@ -73,6 +74,16 @@ class TrackerConfig:
     good_nrms, lost_nrms: thresholds on the residual RMS normalised by the contrast (std) of the
     observed pixels: above good_nrms the motion hypotheses are tried, above lost_nrms the frame is
     lost (≈1.4 for an unrelated image).
+    depth_weight: RGB-D only — weight of the current frame's depth map (``tracking.geometric``:
+    keyframe points seen from the mid-exposure pose should lie on it). The depth error, in units of
+    the sensor noise σ(z) = depth_sigma[0] + depth_sigma[1]·(z − 0.4)² m, counts as
+    ``depth_weight`` intensity units per σ (0.01 ≈ the photometric noise makes both terms
+    maximum-likelihood under Gaussian noise); 0 = off, images only as in MBA-VO. Used when ``track``
+    is given the frame's depth. depth_sigma: (a, b) of the noise model (Kinect v1: 1.2 mm,
+    1.9 mm/m²; ``mbavo synth`` writes its own to camera.yaml and ``mbavo track`` reads it);
+    depth_huber: Huber threshold in σ; depth_stride: grid spacing of the term's keyframe points at
+    full resolution (halved per level, at least 2); depth_edge: depth samples whose neighbours
+    differ by more than this fraction are on a depth edge and dropped.
     """
 
     levels: int = 4
@@ -101,6 +112,11 @@ class TrackerConfig:
     blur_prior: float = 0.01
     blur_prior_min_rad: float = 5e-4
     blur_prior_rel: float = 0.2
+    depth_weight: float = 0.0
+    depth_sigma: tuple[float, float] = (0.0012, 0.0019)
+    depth_huber: float = 3.0
+    depth_stride: int = 8
+    depth_edge: float = 0.02
 
     def __post_init__(self):
         if self.n_mode not in ("fixed", "adaptive"):
@@ -113,6 +129,10 @@ class TrackerConfig:
             raise ValueError(f"response_gamma must be positive, got {self.response_gamma}")
         if self.n < 1:
             raise ValueError(f"n must be >= 1, got {self.n}")
+        if not (self.depth_weight >= 0 and self.depth_huber > 0 and self.depth_stride >= 1 and self.depth_edge > 0):
+            raise ValueError("depth_weight must be >= 0, depth_huber and depth_edge > 0, depth_stride >= 1")
+        if len(self.depth_sigma) != 2 or not (self.depth_sigma[0] > 0 and self.depth_sigma[1] >= 0):
+            raise ValueError(f"depth_sigma must be (a > 0, b >= 0), got {self.depth_sigma}")
         for name in ("points", "cell", "max_steps"):
             if len(getattr(self, name)) < self.levels:
                 raise ValueError(f"{name} needs one entry per level ({self.levels}), got {getattr(self, name)}")
@@ -120,12 +140,14 @@ class TrackerConfig:
 
 @dataclasses.dataclass(frozen=True)
 class Keyframe:
-    """A sharp reference image with its pyramid, camera per level and selected points per level."""
+    """A sharp reference image with its pyramid, camera per level and selected points per level
+    (photometric points on strong gradients; depth points on a grid, for the optional depth term)."""
 
     images: tuple  # per level, jnp (H_l, W_l)
     cameras: tuple  # per level, PinholeCamera
     points: tuple  # per level, LevelPoints (fixed size)
     depth: np.ndarray  # level-0 depth (metres, NaN = none)
+    depth_points: tuple = ()  # per level, LevelPoints on a grid (fixed size), for ``depth_weight``
 
     @staticmethod
     def create(image, depth, camera: PinholeCamera, config: TrackerConfig = TrackerConfig()) -> "Keyframe":
@@ -135,7 +157,7 @@ class Keyframe:
             raise ValueError(f"keyframe image is {img.shape[1]}x{img.shape[0]}, camera is {camera.width}x{camera.height}")
         if dep.shape != img.shape:
             raise ValueError(f"keyframe depth shape {dep.shape} differs from image shape {img.shape}")
-        images, cams, pts = [], [], []
+        images, cams, pts, dpts = [], [], [], []
         im, dp = linearize(img, config.response_gamma), dep
         for level in range(config.levels):
             if level:
@@ -144,7 +166,8 @@ class Keyframe:
             images.append(jnp.asarray(im))
             cams.append(camera.scaled(level))
             pts.append(select_points(im, dp, config.points[level], config.cell[level], config.grad_threshold))
-        return Keyframe(tuple(images), tuple(cams), tuple(pts), dep)
+            dpts.append(select_depth_points(dp, _depth_stride(config, level), config.depth_edge))
+        return Keyframe(tuple(images), tuple(cams), tuple(pts), dep, tuple(dpts))
 
     def n_points(self, level: int = 0) -> int:
         return self.points[level].count
@@ -168,6 +191,20 @@ def linearize(image, gamma: float):
     """Photometric calibration by an inverse gamma response: I → clip(I, 0, 1)^γ."""
     image = np.clip(np.asarray(image, np.float32), 0.0, 1.0)
     return image if gamma == 1.0 else image ** np.float32(gamma)
+
+
+def _depth_stride(config: TrackerConfig, level: int) -> int:
+    return max(2, config.depth_stride >> level)
+
+
+def _depth_pyramid(depth, levels):
+    """The current frame's depth per level, 0 where missing (what ``geometric.sample_depth`` expects)."""
+    d = np.asarray(depth, np.float32)
+    d = np.where(np.isfinite(d) & (d > 0), d, np.nan).astype(np.float32)
+    out = [d]
+    for _ in range(levels - 1):
+        out.append(downsample_depth(out[-1]))
+    return [jnp.asarray(np.nan_to_num(x, nan=0.0)) for x in out]
 
 
 def _frame_pyramid(image, levels):
@@ -225,9 +262,11 @@ def _level_setup(cam, cur_image, pixels, depths, pvalid, anchor: ExposureTraject
 @partial(jax.jit, static_argnames=("n", "jacobian", "max_steps", "rigid", "affine", "use_outliers"))
 def _solve_level(
     ref_image, cam, cur_image, pixels, depths, pvalid, anchor, affine_ab, huber, outlier_sigma, rtol, atol,
-    prior_blur, prior_sigma_intensity, prior_min_rad, prior_rel,
+    prior_blur, prior_sigma_intensity, prior_min_rad, prior_rel, depth_term,
     *, n, jacobian, max_steps, rigid, affine, use_outliers,
 ):
+    """One level's LM solve. ``depth_term``: None, or (current depth, depth-point pixels, depths,
+    validity, weight, huber, edge, sigma) for the optional geometric residuals."""
     rays, d, observed, mask = _level_setup(cam, cur_image, pixels, depths, pvalid, anchor)
     problem = LevelProblem(ref_image, cam, anchor, rays, d, observed, mask, n, jacobian)
     residual = make_residual_fn()
@@ -261,12 +300,19 @@ def _solve_level(
         rel = traj.start.inverse().compose(traj.end)
         return jnp.concatenate([quat.log(rel.q), rel.t])
 
+    def geometric(z, prob):
+        cur_depth, dpix, ddep, dval, weight, dhuber, edge, sigma = depth_term
+        mid = prob.anchor.plus(expand(z)[:12]).middle()
+        r, _ = depth_residuals(mid, cam, cur_depth, dpix, ddep, dval, edge, sigma)
+        return weight * robust(r, dhuber)
+
     def fn(z, prob):
-        photometric = robust(residual(expand(z), prob), huber)
-        if rigid:
-            return photometric
-        prior = prior_weight * sqrt_valid * scale * (blur_vector(prob.anchor.plus(expand(z)[:12])) - prior_blur)
-        return jnp.concatenate([photometric, prior])
+        parts = [robust(residual(expand(z), prob), huber)]
+        if depth_term is not None:
+            parts.append(geometric(z, prob))
+        if not rigid:
+            parts.append(prior_weight * sqrt_valid * scale * (blur_vector(prob.anchor.plus(expand(z)[:12])) - prior_blur))
+        return jnp.concatenate(parts) if len(parts) > 1 else parts[0]
 
     # RMS norm: the max-norm default asks every one of thousands of residuals to settle below atol
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, norm=optx.rms_norm, linear_solver=lx.QR())
@@ -298,7 +344,7 @@ def _n_for_level(config: TrackerConfig, blur0: float, level: int) -> int:
     return max(config.n >> level, min(config.n_coarse_min, config.n))
 
 
-def _coarse_to_fine(keyframe: Keyframe, pyr, init: ExposureTrajectory, config: TrackerConfig, blur0: float):
+def _coarse_to_fine(keyframe: Keyframe, pyr, init: ExposureTrajectory, config: TrackerConfig, blur0: float, depth_pyr=None):
     traj = init
     ab = jnp.zeros(2, jnp.float32)
     per_level = []
@@ -311,11 +357,16 @@ def _coarse_to_fine(keyframe: Keyframe, pyr, init: ExposureTrajectory, config: T
     for level in reversed(range(config.levels)):
         pts = keyframe.points[level]
         n = _n_for_level(config, blur0, level)
+        depth_term = None
+        if depth_pyr is not None:
+            dp = keyframe.depth_points[level]
+            depth_term = (depth_pyr[level], jnp.asarray(dp.pixels), jnp.asarray(dp.depths), jnp.asarray(dp.valid),
+                          config.depth_weight, config.depth_huber, config.depth_edge, tuple(config.depth_sigma))
         out = _solve_level(
             keyframe.images[level], keyframe.cameras[level], pyr[level],
             jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid),
             traj, ab, config.huber, config.outlier_sigma, config.rtol, config.atol, prior_blur, config.blur_prior,
-            config.blur_prior_min_rad, config.blur_prior_rel,
+            config.blur_prior_min_rad, config.blur_prior_rel, depth_term,
             n=n, jacobian=config.jacobian, max_steps=config.max_steps[level], rigid=rigid,
             affine=config.affine, use_outliers=level < config.levels - 1 and config.outlier_sigma > 0,
         )
@@ -364,9 +415,12 @@ def motion_hypotheses(init: ExposureTrajectory) -> list:
     return out
 
 
-def track(keyframe: Keyframe, frame, init: ExposureTrajectory | None = None, config: TrackerConfig = TrackerConfig()):
+def track(keyframe: Keyframe, frame, init: ExposureTrajectory | None = None, config: TrackerConfig = TrackerConfig(), depth=None):
     """Estimate the exposure trajectory of ``frame`` (a blurry image, float [0, 1], the keyframe's
     size) relative to ``keyframe``.
+
+    ``depth``: the frame's own depth map (metres; NaN or 0 = missing), used only when
+    ``config.depth_weight > 0`` (the geometric term of ``tracking.geometric``).
 
     ``init``: the initial guess (e.g. constant velocity); the identity when None. Returns
     :class:`TrackResult` ``(trajectory, status, diagnostics)``; it never raises on bad data — a
@@ -390,15 +444,22 @@ def track(keyframe: Keyframe, frame, init: ExposureTrajectory | None = None, con
         diagnostics.update(levels=[], seconds=time.perf_counter() - t0, blur_px=0.0)
         return TrackResult(init, Status.TOO_FEW_POINTS, diagnostics)
     pyr = _frame_pyramid(linearize(image, config.response_gamma), config.levels)
+    depth_pyr = None
+    if config.depth_weight > 0 and depth is not None:
+        if np.shape(depth) != image.shape:
+            raise ValueError(f"frame depth shape {np.shape(depth)} differs from image shape {image.shape}")
+        if not keyframe.depth_points:
+            raise ValueError("keyframe has no depth points: create it with Keyframe.create")
+        depth_pyr = _depth_pyramid(depth, config.levels)
     blur0 = predicted_blur_px(keyframe, init)
-    traj, ab, per_level = _coarse_to_fine(keyframe, pyr, init, config, blur0)
+    traj, ab, per_level = _coarse_to_fine(keyframe, pyr, init, config, blur0, depth_pyr)
     status = _status(per_level, config)
     tried = 1
     if config.hypotheses and (not status.ok or per_level[-1]["nrms"] > config.good_nrms):
         best = (per_level[-1]["nrms"] if status.ok else np.inf, traj, ab, per_level, status, "initial guess")
         for name, hyp in motion_hypotheses(init):
             tried += 1
-            t2, ab2, pl2 = _coarse_to_fine(keyframe, pyr, hyp, config, predicted_blur_px(keyframe, hyp))
+            t2, ab2, pl2 = _coarse_to_fine(keyframe, pyr, hyp, config, predicted_blur_px(keyframe, hyp), depth_pyr)
             st2 = _status(pl2, config)
             score = pl2[-1]["nrms"] if st2.ok else np.inf
             if score < best[0]:
@@ -412,6 +473,7 @@ def track(keyframe: Keyframe, frame, init: ExposureTrajectory | None = None, con
         rms=per_level[-1]["rms"],
         nrms=per_level[-1]["nrms"],
         affine=[float(ab[0]), float(ab[1])],
+        depth_term=depth_pyr is not None,
         blur_px=blur0,
         hypotheses_tried=tried,
         seconds=time.perf_counter() - t0,

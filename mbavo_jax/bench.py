@@ -226,12 +226,17 @@ def format_tracking_table(s: dict) -> str:
     return "\n".join(lines)
 
 
-def _bench_data(preset: str, args) -> pathlib.Path:
+def _bench_data(preset: str, args, depth_model: str = "exact") -> pathlib.Path:
+    """The generated sequence of a preset (``runs/bench_<preset>_<w>x<h>_seed<s>[_sensor]``), made
+    again when missing, too short or older than the depth noise record in camera.yaml."""
     from .synthetic import PRESETS, SynthConfig, generate_sequence
 
-    data = pathlib.Path("runs") / f"bench_{preset}_{args.width}x{args.height}_seed{args.seed}"
-    if not (data / "exposure.txt").is_file() or len(open_sequence(data)) < args.frames + 2:
-        cfg = SynthConfig(**{**PRESETS[preset], "frames": args.frames + 2, "width": args.width, "height": args.height, "seed": args.seed})
+    suffix = "" if depth_model == "exact" else f"_{depth_model}"
+    data = pathlib.Path("runs") / f"bench_{preset}_{args.width}x{args.height}_seed{args.seed}{suffix}"
+    if (not (data / "exposure.txt").is_file() or len(open_sequence(data)) < args.frames + 2
+            or "depth_sigma" not in open_sequence(data).meta):
+        cfg = SynthConfig(**{**PRESETS[preset], "frames": args.frames + 2, "width": args.width, "height": args.height, "seed": args.seed,
+                             "depth_model": depth_model})
         generate_sequence(cfg, data, progress=None if args.quiet else sys.stderr)
     return data
 
@@ -330,11 +335,12 @@ def _deblur_quality(seq, run: pathlib.Path) -> dict:
     """PSNR/SSIM of the deblurred keyframes (all but the first, which is used as it is) against the
     generated sharp frames, and of the blurry input against the same."""
     from .deblur import psnr, ssim
+    from .io import read_tum_trajectory
 
-    kf_dir = run / "keyframes"
     rows = []
-    for p in sorted(kf_dir.glob("*.png"))[1:]:
-        stamp = float(p.stem)
+    stamps, _ = read_tum_trajectory(run / "keyframes.txt")  # this run's keyframes, not stale files
+    for stamp in stamps[1:]:
+        p = run / "keyframes" / f"{stamp:.6f}.png"
         k = int(np.argmin(np.abs(seq.timestamps - stamp)))
         sharp_path = pathlib.Path(seq[k].path).parent.parent / "sharp" / pathlib.Path(seq[k].path).name
         if not sharp_path.is_file():
@@ -362,11 +368,17 @@ def _ate(t_gt, p_gt, run: pathlib.Path) -> float:
         return float("nan")
 
 
-def run_odometry_benchmark(sequences: dict, out_root, progress=sys.stderr, tracker_overrides: dict | None = None) -> dict:
-    """ATE (SE3) and frame drops for ours n=64, n=1, adaptive n, Open3D (hybrid and colour terms) and
-    OpenCV RGB-D odometry on each sequence. Our seconds per frame is the whole loop's wall time
-    (compilation, keyframe selection and deblurring included); the peers' is their median
-    odometry call. ``tracker_overrides``: TrackerConfig fields for our runs (e.g. small images)."""
+ODOMETRY_METHODS = ("ours_n64", "ours_n1", "ours_adaptive", "ours_n64_depth", "ours_n1_depth", "open3d", "open3d_color", "opencv")
+
+
+def run_odometry_benchmark(sequences: dict, out_root, progress=sys.stderr, tracker_overrides: dict | None = None,
+                           depth_weight: float = 0.01) -> dict:
+    """ATE (SE3) and frame drops for ours n=64, n=1, adaptive n (images only, as MBA-VO), ours n=64
+    and n=1 with the current frame's depth (``depth_weight``, noise model from camera.yaml), Open3D
+    (hybrid and colour terms) and OpenCV RGB-D odometry on each sequence. Our seconds per frame is
+    the whole loop's wall time (compilation, keyframe selection and deblurring included); the
+    peers' is their median odometry call. ``tracker_overrides``: TrackerConfig fields for our runs
+    (e.g. small images)."""
     from .odometry import OdometryConfig, run_odometry
 
     out_root = pathlib.Path(out_root)
@@ -374,11 +386,14 @@ def run_odometry_benchmark(sequences: dict, out_root, progress=sys.stderr, track
     for name, path in sequences.items():
         seq = open_sequence(path)
         gamma = float(seq.meta.get("response_gamma", 1.0))
-        base = TrackerConfig(**{**(tracker_overrides or {}), "response_gamma": gamma})
+        sigma = tuple(seq.meta.get("depth_sigma", TrackerConfig.depth_sigma))
+        base = TrackerConfig(**{**(tracker_overrides or {}), "response_gamma": gamma, "depth_sigma": sigma, "depth_weight": 0.0})
         configs = {
             "ours_n64": base,
             "ours_n1": dataclasses.replace(base, blur_aware=False),
             "ours_adaptive": dataclasses.replace(base, n_mode="adaptive"),
+            "ours_n64_depth": dataclasses.replace(base, depth_weight=depth_weight),
+            "ours_n1_depth": dataclasses.replace(base, blur_aware=False, depth_weight=depth_weight),
         }
         row = {}
         t_gt, p_gt = seq.groundtruth
@@ -408,36 +423,40 @@ def run_odometry_benchmark(sequences: dict, out_root, progress=sys.stderr, track
             row[method] = {"ate_rmse_m": _ate(t_gt, p_gt, out_root / name / method), "frame_drop_rate": p_sum["dropped"] / p_sum["frames"],
                            "seconds_per_frame": p_sum["median_ms"] / 1000}
         blur = yaml.safe_load((pathlib.Path(path) / "synth.yaml").read_text()).get("mean_blur_px") if (pathlib.Path(path) / "synth.yaml").is_file() else None
-        results[name] = {"mean_blur_px": blur, "frames": len(seq), "methods": row}
+        results[name] = {"mean_blur_px": blur, "frames": len(seq), "depth_sigma": list(sigma), "methods": row}
     return results
 
 
 def format_odometry_table(res: dict) -> str:
-    methods = ["ours_n64", "ours_n1", "ours_adaptive", "open3d", "open3d_color", "opencv"]
-    lines = ["ATE (SE3-aligned RMSE, metres) and frame-drop rate. open3d: hybrid term (photometric + ICP on the current frame's depth);",
-             "open3d_color: photometric term only; opencv: cv2.Odometry RGB_DEPTH (also uses the current frame's depth)"]
-    lines.append(f"{'sequence':<14} {'blur px':>8} " + " ".join(f"{m + ' ATE m':>18} {'drop':>5}" for m in methods))
-    for name, r in res.items():
-        cells = []
+    """Three tables, one row per method and one column per sequence: ATE (mm), frame-drop rate,
+    seconds per frame; then the deblurred keyframes' PSNR/SSIM."""
+    names = list(res)
+    head = f"{'method':<16}" + "".join(f"{n:>16}" for n in names)
+    methods = [m for m in ODOMETRY_METHODS if any(m in r["methods"] for r in res.values())]
+
+    def table(title, cell):
+        lines = [title, head]
         for m in methods:
-            x = r["methods"].get(m, {})
-            cells.append(f"{x.get('ate_rmse_m', float('nan')):>18.4f} {x.get('frame_drop_rate', float('nan')):>5.2f}")
-        blur = r["mean_blur_px"]
-        lines.append(f"{name:<14} {blur if blur is not None else float('nan'):>8.1f} " + " ".join(cells))
-    lines.append("")
-    lines.append("ours: wall seconds per frame of the whole loop (compilation, keyframes, deblurring included) [median tracking ms];")
-    lines.append("peers: median seconds per odometry call")
-    lines.append(f"{'sequence':<14} {'n64 s [ms]':>12} {'n1 s [ms]':>12} {'adaptive s [ms]':>15} {'open3d':>8} {'o3d_col':>8} {'opencv':>8}   deblurred keyframes: PSNR (blurry) / SSIM (blurry)")
-    for name, r in res.items():
-        m = r["methods"]
-        d = m["ours_n64"].get("deblur") or {}
-        deb = f"{d['psnr_deblurred']:.2f} dB ({d['psnr_blurry']:.2f}) / {d['ssim_deblurred']:.3f} ({d['ssim_blurry']:.3f}), {d['keyframes']} kf" if d else "-"
-        lines.append(
-            f"{name:<14} {m['ours_n64']['seconds_per_frame']:>5.3f} [{m['ours_n64'].get('median_track_ms', 0):>4.0f}] "
-            f"{m['ours_n1']['seconds_per_frame']:>5.3f} [{m['ours_n1'].get('median_track_ms', 0):>4.0f}] "
-            f"{m['ours_adaptive']['seconds_per_frame']:>5.3f} [{m['ours_adaptive'].get('median_track_ms', 0):>4.0f}] "
-            f"{m.get('open3d', {}).get('seconds_per_frame', float('nan')):>8.3f} {m.get('open3d_color', {}).get('seconds_per_frame', float('nan')):>8.3f} {m.get('opencv', {}).get('seconds_per_frame', float('nan')):>8.3f}   {deb}"
-        )
+            lines.append(f"{m:<16}" + "".join(f"{cell(res[n]['methods'].get(m, {})):>16}" for n in names))
+        return lines
+
+    def ms(x):
+        if "seconds_per_frame" not in x:
+            return "-"
+        t = f"{x['seconds_per_frame']:.3f}"
+        return t + (f" [{x['median_track_ms']:.0f}]" if "median_track_ms" in x else "")
+
+    lines = [f"{'':<16}" + "".join(f"{(f'{b:.1f} px' if b is not None else 'blur ?'):>16}" for b in (r["mean_blur_px"] for r in res.values())), ""]
+    lines += table("ATE, SE3-aligned RMSE (mm)", lambda x: f"{1000 * x['ate_rmse_m']:.2f}" if "ate_rmse_m" in x else x.get("error", "-")[:15])
+    lines += ["", *table("frame-drop rate", lambda x: f"{x['frame_drop_rate']:.2f}" if "frame_drop_rate" in x else "-")]
+    lines += ["", *table("seconds per frame: ours = whole loop incl. compilation, keyframes, deblurring [median tracking ms]; peers = median call", ms)]
+    lines += ["", "deblurred keyframes (ours_n64): PSNR dB (blurry input) / SSIM (blurry input)"]
+    for n, r in res.items():
+        d = r["methods"].get("ours_n64", {}).get("deblur") or {}
+        lines.append(f"{n:<16}" + (f"{d['psnr_deblurred']:.2f} ({d['psnr_blurry']:.2f}) / {d['ssim_deblurred']:.3f} ({d['ssim_blurry']:.3f}), {d['keyframes']} keyframes" if d else "-"))
+    lines += ["", "ours_n64/n1/adaptive: images only (MBA-VO); *_depth: plus the current frame's depth (tracking.geometric);",
+              "open3d: hybrid term (photometric + ICP on the current frame's depth); open3d_color: photometric only;",
+              "opencv: cv2.Odometry RGB_DEPTH (uses the current frame's depth); *_sensor sequences: Kinect-class depth (mbavo synth --depth-model sensor)"]
     return "\n".join(lines)
 
 
@@ -448,9 +467,11 @@ def main_odometry(args) -> int:
     progress = None if args.quiet else sys.stderr
     root = pathlib.Path(args.out)
     seqs = {}
-    for preset in args.presets.split(","):
-        a = argparse_ns(frames=args.frames - 2, width=args.width, height=args.height, seed=args.seed, quiet=args.quiet)
+    a = argparse_ns(frames=args.frames - 2, width=args.width, height=args.height, seed=args.seed, quiet=args.quiet)
+    for preset in filter(None, args.presets.split(",")):
         seqs[preset] = _bench_data(preset, a)
+    for preset in filter(None, args.sensor_presets.split(",")):
+        seqs[f"{preset}_sensor"] = _bench_data(preset, a, depth_model="sensor")
     if args.tum:
         tum_src = pathlib.Path(args.tum)
         tum_out = pathlib.Path("runs") / "bench_tum_blurred"

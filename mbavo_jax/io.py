@@ -160,7 +160,8 @@ CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 
 def read_camera_yaml(path) -> dict:
     """Camera YAML: ``fx fy cx cy width height`` required; optional ``depth_scale``,
-    ``exposure_ms``, ``fps``, ``response_gamma``."""
+    ``exposure_ms``, ``fps``, ``response_gamma``, ``depth_sigma`` ([a, b] of the depth noise
+    σ(z) = a + b·(z − 0.4)² m)."""
     path = pathlib.Path(path)
     if not path.is_file():
         raise DataError(path, "camera file not found")
@@ -185,6 +186,15 @@ def read_camera_yaml(path) -> dict:
         if v < 0:
             raise DataError(path, f"camera key '{k}' must not be negative, got {v}")
         data[k] = int(v) if k in ("width", "height") else v
+    if "depth_sigma" in data:
+        ds = data["depth_sigma"]
+        try:
+            ok = len(ds) == 2 and float(ds[0]) > 0 and float(ds[1]) >= 0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise DataError(path, f"depth_sigma must be [a > 0, b >= 0] (metres), got {ds!r}")
+        data["depth_sigma"] = [float(ds[0]), float(ds[1])]
     return data
 
 

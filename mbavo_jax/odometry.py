@@ -242,6 +242,9 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
         kf_state = (Keyframe.create(kf_img, seq[k].depth, seq.camera, tracker), Pose.from_vector(jnp.asarray(p_kf[-1], jnp.float32)), float(t_kf[-1]))
         keyframe_count = len(t_kf)
     append = resume and start_index > 0
+    if not append:  # a fresh run: keyframe images and triptychs of an earlier run in ``out`` would mix in
+        for stale in [*(out / "keyframes").glob("*.png"), *out.glob("triptych_*.png")]:
+            stale.unlink()
     traj_w = TrajectoryWriter(out / "trajectory.txt", append=append)
     exp_w = TrajectoryWriter(out / "exposure.txt", "timestamp start:tx ty tz qx qy qz qw end:tx ty tz qx qy qz qw (camera-to-world)", append=append)
     kf_w = TrajectoryWriter(out / "keyframes.txt", append=append)
@@ -284,7 +287,7 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
             if frame.depth is not None and not np.isfinite(frame.depth).any():
                 result_status, result = Status.TOO_FEW_POINTS, None
             else:
-                result = track(kf, frame.image, init, tracker)
+                result = track(kf, frame.image, init, tracker, depth=frame.depth)
                 result_status = result.status
             ms = 1000 * (time.perf_counter() - t0)
             is_kf = 0

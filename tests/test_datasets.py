@@ -166,6 +166,9 @@ def _corrupt(root: pathlib.Path, what: str):
     if what == "camera_missing_key":
         (root / "camera.yaml").write_text(f"fx: 30\ncx: 15.5\ncy: 11.5\nwidth: {W}\nheight: {H}\n")
         return "camera.yaml"
+    if what == "camera_depth_sigma":
+        (root / "camera.yaml").write_text(f"fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\nwidth: {W}\nheight: {H}\ndepth_sigma: [0.001]\n")
+        return "camera.yaml"
     if what == "quaternion":
         with open(root / "groundtruth.txt", "a") as f:
             f.write("10.5 0 0 0 0 0 0 2\n")
@@ -176,7 +179,7 @@ def _corrupt(root: pathlib.Path, what: str):
 @pytest.mark.parametrize(
     "what",
     ["missing_image", "tum_columns", "unsorted", "duplicate", "depth_size", "depth_dtype", "corrupt_png",
-     "camera_negative", "camera_missing_key", "quaternion"],
+     "camera_negative", "camera_missing_key", "camera_depth_sigma", "quaternion"],
 )
 def test_bad_input_is_one_line_error(tmp_path, what):
     root = make_tum(tmp_path / "seq")

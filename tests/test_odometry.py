@@ -15,6 +15,7 @@ import time
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.deblur import deblur, psnr, ssim
@@ -52,6 +53,17 @@ def test_track_end_to_end(seq_dir, tmp_path):
         assert (out / name).is_file(), name
     cfg = (out / "config.yaml").read_text()
     assert "response_gamma: 2.2" in cfg and "levels: 3" in cfg
+
+
+def test_track_with_depth_term_reads_the_noise_model(seq_dir, tmp_path):
+    """`--set tracker.depth_weight=0.01` adds the frame's depth; σ comes from the sequence's camera.yaml."""
+    out = tmp_path / "run"
+    r = mbavo("track", seq_dir, "--out", out, "--format", "json", "-q", *SMALL, "--set", "tracker.depth_weight=0.01")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["dropped"] == 0 and summary["ate_rmse_m"] < 0.02, summary
+    cfg = yaml.safe_load((out / "config.yaml").read_text())["tracker"]
+    assert cfg["depth_weight"] == 0.01 and cfg["depth_sigma"] == [0.0005, 0.0]
 
 
 def test_killed_run_keeps_every_finished_pose_and_resumes(seq_dir, tmp_path):
@@ -165,12 +177,13 @@ def test_odometry_benchmark_runs_every_method(tmp_path):
     small = dict(levels=3, points=(192, 128, 64), cell=(10, 7, 5), max_steps=(10, 12, 20))
     res = run_odometry_benchmark({"strong": tmp_path / "seq"}, tmp_path / "bench", progress=None, tracker_overrides=small)
     row = res["strong"]["methods"]
-    assert set(row) == {"ours_n64", "ours_n1", "ours_adaptive", "open3d", "open3d_color", "opencv"}
-    for m in ("ours_n64", "ours_n1", "ours_adaptive", "opencv"):
+    assert set(row) == {"ours_n64", "ours_n1", "ours_adaptive", "ours_n64_depth", "ours_n1_depth", "open3d", "open3d_color", "opencv"}
+    assert res["strong"]["depth_sigma"] == [0.0005, 0.0]  # read from the generated camera.yaml
+    for m in ("ours_n64", "ours_n1", "ours_adaptive", "ours_n64_depth", "ours_n1_depth", "opencv"):
         assert np.isfinite(row[m]["ate_rmse_m"]) and row[m]["frame_drop_rate"] == 0.0, (m, row[m])
     assert row["ours_n64"]["ate_rmse_m"] < 0.02
     table = format_odometry_table(res)
-    assert "ours_adaptive" in table and "opencv" in table and "deblurred keyframes" in table
+    assert "ours_adaptive" in table and "ours_n64_depth" in table and "opencv" in table and "deblurred keyframes" in table
 
 
 def test_missing_depth_mid_run_is_one_line_error_and_keeps_finished_poses(seq_dir, tmp_path):
@@ -196,3 +209,19 @@ def test_keyframe_decision_uses_flow_visibility_and_blur():
     assert needs_keyframe(70.0, 0.9, 5.0, 640, held) and not needs_keyframe(70.0, 0.9, 30.0, 640, held)
     assert needs_keyframe(100.0, 0.9, 30.0, 640, held)  # beyond keyframe_flow_max (15 %): whatever the blur
     assert needs_keyframe(10.0, 0.5, 30.0, 640, held)
+
+
+def test_fresh_run_clears_keyframe_images_of_an_earlier_run(seq_dir, tmp_path):
+    """Keyframe images and triptychs left in --out by an earlier run must not mix into a new one
+    (they did: the benchmark's PSNR read stale keyframes); --resume keeps them."""
+    out = tmp_path / "run"
+    (out / "keyframes").mkdir(parents=True)
+    stale = [out / "keyframes" / "99.000000.png", out / "triptych_7.png"]
+    for p in stale:
+        cv2.imwrite(str(p), np.zeros((4, 4), np.uint8))
+    seq = open_sequence(seq_dir)
+    tc, oc = load_config(None, ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]"])
+    run_odometry(seq, out, tc, oc, max_frames=2, progress=None)
+    assert not any(p.exists() for p in stale)
+    kf_stamps, _ = read_tum_trajectory(out / "keyframes.txt")
+    assert sorted(p.name for p in (out / "keyframes").glob("*.png")) == sorted(f"{t:.6f}.png" for t in kf_stamps)

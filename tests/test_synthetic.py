@@ -98,3 +98,33 @@ def test_blurring_a_real_clip(tmp_path):
     f = seq[5]
     sharp = read_image_gray(pathlib.Path(f.path).parent.parent / "sharp" / pathlib.Path(f.path).name)
     assert np.mean(np.abs(sharp - f.image)) > 0.01
+
+
+def test_sensor_depth_model():
+    """Kinect-class depth: noise σ(z) = a + b (z − 0.4)², spatially correlated, holes on depth edges."""
+    from mbavo_jax.synthetic import sensor_depth
+
+    rng = np.random.default_rng(0)
+    depth = np.full((120, 160), 3.0, np.float32)
+    depth[:, 80:] = 4.0
+    depth[:5, :5] = 0.0  # no surface
+    noisy = sensor_depth(depth, rng)
+    assert noisy[:5, :5].max() == 0.0
+    assert (noisy[:, 79:81] == 0).all()  # the edge is a hole
+    flat = noisy[10:-10, 10:70]
+    ok = flat > 0
+    assert 0.95 < ok.mean() < 1.0  # 1 % random dropouts
+    sigma = 0.0012 + 0.0019 * (3.0 - 0.4) ** 2
+    assert abs(flat[ok].std() / sigma - 1) < 0.3 and abs(flat[ok].mean() - 3.0) < 0.3 * sigma
+    right = noisy[10:-10, 90:-10]
+    assert right[right > 0].std() > 1.5 * flat[ok].std()  # grows with depth
+    corr = np.corrcoef(flat[:, :-1][ok[:, :-1] & ok[:, 1:]], flat[:, 1:][ok[:, :-1] & ok[:, 1:]])[0, 1]
+    assert corr > 0.5  # neighbours share their error
+
+
+def test_depth_model_recorded_in_camera_yaml(tmp_path):
+    out = tmp_path / "s"
+    mbavo("synth", "--preset", "mild", "--frames", 2, "--width", 64, "--height", 48, "--out", out, "-q", "--no-real-textures", "--depth-model", "sensor")
+    seq = open_sequence(out)
+    assert seq.meta["depth_sigma"] == [0.0012, 0.0019]
+    assert (seq[0].depth == 0).any() or np.isnan(seq[0].depth).any()  # holes

@@ -10,6 +10,10 @@ Two sources:
   path (symmetric about each frame's own pose, so the clip's ground truth stays the mid-exposure
   pose).
 
+Depth is the mid-exposure z-depth, either exact (``depth_model="exact"``, 16-bit quantised) or as a
+structured-light sensor would write it (``"sensor"``, :func:`sensor_depth`). camera.yaml records the
+depth noise model (``depth_sigma``) the way it records the response γ, so trackers can weigh depth.
+
 Output folder: ``rgb.txt rgb/ depth.txt depth/ (16-bit, /5000) groundtruth.txt`` (mid-exposure,
 camera-to-world), ``exposure.txt`` (start and end pose), ``times.txt`` (``id timestamp exposure_ms``),
 ``sharp/`` (mid-exposure sharp image), ``camera.yaml`` and ``synth.yaml`` (settings and blur stats).
@@ -37,14 +41,20 @@ from ..geometry.trajectory import ExposureTrajectory
 from ..io import write_camera_yaml, write_exposure_file, write_tum_trajectory
 from .scene import default_scene, render_exposure, scene_arrays
 
-__all__ = ["SynthConfig", "PRESETS", "generate_sequence", "blur_real_sequence", "camera_path", "mean_blur_length"]
+__all__ = ["SynthConfig", "PRESETS", "generate_sequence", "blur_real_sequence", "camera_path", "mean_blur_length", "sensor_depth", "DEPTH_SIGMA"]
+
+# σ(z) = a + b·(z − 0.4)² metres of each depth model (tracking.geometric uses the same form).
+DEPTH_SIGMA = {
+    "exact": (0.0005, 0.0),  # 16-bit quantisation (0.2 mm) and bilinear interpolation
+    "sensor": (0.0012, 0.0019),  # Kinect v1 axial noise, Nguyen, Izadi & Lovell 2012
+}
 
 
 @dataclasses.dataclass(frozen=True)
 class SynthConfig:
     """Settings of a generated sequence. ``speed`` (m/s) and ``rotation_rate`` (deg/s) are peak
     rates of the smooth path; ``exposure_ms`` the exposure time τ; ``subframes`` sub-renders per
-    exposure."""
+    exposure; ``depth_model``: "exact" or "sensor" (see :func:`sensor_depth`)."""
 
     frames: int = 100
     width: int = 640
@@ -58,6 +68,11 @@ class SynthConfig:
     noise: float = 0.002
     seed: int = 0
     real_textures: bool = True
+    depth_model: str = "exact"
+
+    def __post_init__(self):
+        if self.depth_model not in DEPTH_SIGMA:
+            raise ValueError(f"depth_model must be one of {', '.join(DEPTH_SIGMA)}, got {self.depth_model!r}")
 
 
 # Mean blur length at 640x480 (measured by ``mean_blur_length``, reported by ``mbavo synth``):
@@ -118,6 +133,29 @@ def mean_blur_length(depth: np.ndarray, camera: PinholeCamera, poses: Pose, mid:
     return float(np.mean(np.sum(np.linalg.norm(np.diff(px, axis=0), axis=-1), axis=0))) if len(mats) > 1 else 0.0
 
 
+def sensor_depth(depth: np.ndarray, rng: np.random.Generator, sigma=DEPTH_SIGMA["sensor"], correlation_px: float = 2.0,
+                 edge_rel: float = 0.05, dropout: float = 0.01) -> np.ndarray:
+    """Exact z-depth (0 = none) as a structured-light sensor writes it: axial noise with
+    σ(z) = a + b·(z − 0.4)² (Nguyen et al. 2012), spatially correlated over ``correlation_px``
+    (the sensor matches 9x9 windows, so neighbouring pixels share their error); holes along depth
+    edges (the 3x3 neighbourhood spans more than ``edge_rel`` of the depth: occlusion shadows and
+    mixed pixels) and a fraction ``dropout`` of random missing pixels. Missing = 0."""
+    d = np.asarray(depth, np.float32)
+    valid = d > 0
+    field = rng.normal(size=d.shape).astype(np.float32)
+    if correlation_px > 0:
+        field = cv2.GaussianBlur(field, (0, 0), correlation_px)
+        field /= max(float(field.std()), 1e-12)
+    noisy = d + field * (sigma[0] + sigma[1] * (d - 0.4) ** 2)
+    big = np.where(valid, d, np.float32(1e6))
+    kernel = np.ones((3, 3), np.uint8)
+    lo = cv2.erode(big, kernel)
+    hi = cv2.dilate(np.where(valid, d, np.float32(0.0)), kernel)
+    edge = (hi - lo) > edge_rel * np.where(valid, d, 1.0)
+    keep = valid & ~edge & (rng.random(d.shape) >= dropout) & (noisy > 0)
+    return np.where(keep, noisy, 0.0).astype(np.float32)
+
+
 def _write_gray(path, img01):
     cv2.imwrite(str(path), np.clip(np.round(np.asarray(img01) * 255.0), 0, 255).astype(np.uint8))
 
@@ -174,7 +212,8 @@ def generate_sequence(cfg: SynthConfig, out, progress=sys.stderr) -> dict:
         name = f"{t_mid:.6f}.png"
         _write_gray(out / "rgb" / name, blurry)
         _write_gray(out / "sharp" / name, sharp)
-        _write_depth(out / "depth" / name, np.asarray(depth))
+        depth_out = np.asarray(depth) if cfg.depth_model == "exact" else sensor_depth(np.asarray(depth), rng)
+        _write_depth(out / "depth" / name, depth_out)
         start = jax.tree_util.tree_map(lambda a: a[0], poses)
         end = jax.tree_util.tree_map(lambda a: a[-1], poses)
         stamps.append(t_mid)
@@ -183,14 +222,14 @@ def generate_sequence(cfg: SynthConfig, out, progress=sys.stderr) -> dict:
         ends.append(np.asarray(end.to_vector()))
         blur.append(mean_blur_length(np.asarray(depth), camera, poses, mid))
         _progress(i, cfg.frames, t0, progress)
-    summary = _write_layout(out, camera, cfg.fps, cfg.exposure_ms, cfg.response_gamma, stamps, stamps, mids, starts, ends, blur)
+    summary = _write_layout(out, camera, cfg.fps, cfg.exposure_ms, cfg.response_gamma, stamps, stamps, mids, starts, ends, blur, DEPTH_SIGMA[cfg.depth_model])
     summary.update(source="synthetic room", config=dataclasses.asdict(cfg), textures=list(scene.texture_names))
     summary["seconds"] = round(time.perf_counter() - t0, 2)
     (out / "synth.yaml").write_text(yaml.safe_dump(summary, sort_keys=False))
     return summary
 
 
-def _write_layout(out, camera, fps, exposure_ms, gamma, stamps, gt_stamps, mids, starts, ends, blur) -> dict:
+def _write_layout(out, camera, fps, exposure_ms, gamma, stamps, gt_stamps, mids, starts, ends, blur, depth_sigma) -> dict:
     """Write the lists, trajectories and camera; ``gt_stamps`` are the frames with ground truth."""
     names = [f"{t:.6f}.png" for t in stamps]
     with open(out / "rgb.txt", "w") as fh:
@@ -208,7 +247,7 @@ def _write_layout(out, camera, fps, exposure_ms, gamma, stamps, gt_stamps, mids,
         out / "camera.yaml",
         fx=float(camera.fx), fy=float(camera.fy), cx=float(camera.cx), cy=float(camera.cy),
         width=camera.width, height=camera.height, depth_scale=5000.0, exposure_ms=float(exposure_ms),
-        fps=float(fps), response_gamma=float(gamma),
+        fps=float(fps), response_gamma=float(gamma), depth_sigma=[float(x) for x in depth_sigma],
     )
     blur = np.asarray(blur)
     return {
@@ -294,7 +333,8 @@ def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int =
         blur.append(mean_blur_length(depth, cam, sub, T_w))
         _progress(i, len(seq), t0, progress)
     exposure_ms = 1000.0 / 30.0 * 0.5
-    summary = _write_layout(out, cam, 30.0, exposure_ms, 1.0, stamps, gt_stamps, mids, starts, ends, blur)
+    summary = _write_layout(out, cam, 30.0, exposure_ms, 1.0, stamps, gt_stamps, mids, starts, ends, blur,
+                            seq.meta.get("depth_sigma", DEPTH_SIGMA["sensor"]))  # real RGB-D: Kinect-class unless the source says
     summary.update(source=f"blurred real clip {seq.path}", blur_px_requested=blur_px, n=n, seed=seed)
     summary["seconds"] = round(time.perf_counter() - t0, 2)
     (out / "synth.yaml").write_text(yaml.safe_dump(summary, sort_keys=False))

@@ -26,6 +26,7 @@ import yaml
 from .datasets import open_sequence
 from .geometry import ExposureTrajectory, Pose
 from .io import read_image_gray
+from .odometry import sequence_calibration
 from .tracking import Keyframe, TrackerConfig, constant_velocity_guess, track
 from .tracking import tracker as tracker_mod
 
@@ -46,7 +47,7 @@ def _reproj(cam, pixels, depths, valid, est: Pose, gt: Pose):
 
 def _errors(kf: Keyframe, est: ExposureTrajectory, gt: ExposureTrajectory):
     pts, cam = kf.points[0], kf.cameras[0]
-    args = (cam, jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid))
+    args = (cam, *pts.on_device)
     ends = np.concatenate([np.asarray(_reproj(*args, est.start, gt.start)), np.asarray(_reproj(*args, est.end, gt.end))])
     mid = np.asarray(_reproj(*args, est.middle(), gt.middle()))
     return float(np.nanmedian(ends)), float(np.nanmedian(mid))
@@ -118,9 +119,8 @@ def run_tracking_benchmark(data, frames: int = 20, peers: bool = True, progress=
     seq = open_sequence(data)
     if seq.exposure_paths is None or seq.groundtruth is None:
         raise ValueError(f"{data}: the benchmark needs a generated sequence with exposure.txt and groundtruth.txt")
-    info = yaml.safe_load((pathlib.Path(data) / "camera.yaml").read_text())
-    gamma = float(info.get("response_gamma", 1.0))
-    base = TrackerConfig(response_gamma=gamma)
+    base = TrackerConfig(**sequence_calibration(seq))
+    gamma = base.response_gamma
     ours = {
         "n1": dataclasses.replace(base, blur_aware=False),
         "n64": dataclasses.replace(base, jacobian="autodiff"),
@@ -385,9 +385,7 @@ def run_odometry_benchmark(sequences: dict, out_root, progress=sys.stderr, track
     results = {}
     for name, path in sequences.items():
         seq = open_sequence(path)
-        gamma = float(seq.meta.get("response_gamma", 1.0))
-        sigma = tuple(seq.meta.get("depth_sigma", TrackerConfig.depth_sigma))
-        base = TrackerConfig(**{**(tracker_overrides or {}), "response_gamma": gamma, "depth_sigma": sigma, "depth_weight": 0.0})
+        base = TrackerConfig(**{**(tracker_overrides or {}), **sequence_calibration(seq), "depth_weight": 0.0})
         configs = {
             "ours_n64": base,
             "ours_n1": dataclasses.replace(base, blur_aware=False),
@@ -423,7 +421,7 @@ def run_odometry_benchmark(sequences: dict, out_root, progress=sys.stderr, track
             row[method] = {"ate_rmse_m": _ate(t_gt, p_gt, out_root / name / method), "frame_drop_rate": p_sum["dropped"] / p_sum["frames"],
                            "seconds_per_frame": p_sum["median_ms"] / 1000}
         blur = yaml.safe_load((pathlib.Path(path) / "synth.yaml").read_text()).get("mean_blur_px") if (pathlib.Path(path) / "synth.yaml").is_file() else None
-        results[name] = {"mean_blur_px": blur, "frames": len(seq), "depth_sigma": list(sigma), "methods": row}
+        results[name] = {"mean_blur_px": blur, "frames": len(seq), "depth_sigma": list(base.depth_sigma), "methods": row}
     return results
 
 

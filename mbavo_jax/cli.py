@@ -133,15 +133,12 @@ def _cmd_info(args) -> int:
 
 
 def _tracker_setup(args, seq):
-    from .odometry import load_config
+    from .odometry import load_config, sequence_calibration
 
     overrides = list(args.set or [])
-    gamma = seq.meta.get("response_gamma") if hasattr(seq, "meta") else None
-    if gamma is not None and not any(o.startswith("tracker.response_gamma=") for o in overrides):
-        overrides.insert(0, f"tracker.response_gamma={float(gamma)}")  # photometric calibration from camera.yaml
-    sigma = seq.meta.get("depth_sigma") if hasattr(seq, "meta") else None
-    if sigma is not None and not any(o.startswith("tracker.depth_sigma=") for o in overrides):
-        overrides.insert(0, f"tracker.depth_sigma=[{float(sigma[0])}, {float(sigma[1])}]")  # depth noise from camera.yaml
+    for key, value in sequence_calibration(seq).items():  # camera.yaml's response γ and depth noise
+        if not any(o.startswith(f"tracker.{key}=") for o in overrides):
+            overrides.insert(0, f"tracker.{key}={json.dumps(list(value) if isinstance(value, tuple) else value)}")
     return load_config(args.config, overrides)
 
 

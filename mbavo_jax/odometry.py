@@ -35,7 +35,7 @@ from .geometry import ExposureTrajectory, Pose
 from .io import TrajectoryWriter, read_exposure_file, read_tum_trajectory
 from .tracking import Keyframe, Status, TrackerConfig, constant_velocity_guess, track
 
-__all__ = ["OdometryConfig", "run_odometry", "load_config", "needs_keyframe"]
+__all__ = ["OdometryConfig", "run_odometry", "load_config", "needs_keyframe", "sequence_calibration"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,6 +109,18 @@ def load_config(path=None, overrides: list[str] | None = None) -> tuple[TrackerC
     return out[0], out[1]
 
 
+def sequence_calibration(seq) -> dict:
+    """The TrackerConfig values a sequence records about its camera (camera.yaml): the response γ
+    (``response_gamma``) and the depth noise model (``depth_sigma``). Explicit settings win over them."""
+    meta = getattr(seq, "meta", None) or {}
+    out = {}
+    if "response_gamma" in meta:
+        out["response_gamma"] = float(meta["response_gamma"])
+    if "depth_sigma" in meta:
+        out["depth_sigma"] = tuple(float(x) for x in meta["depth_sigma"])
+    return out
+
+
 def _coerce(key: str, value, default):
     """A config value checked against the type of its default (YAML reads ``1e9`` as a string, a
     list as a list): numbers where numbers belong, tuples of them for per-level lists."""
@@ -170,7 +182,7 @@ def _flow_visible_blur(kf: Keyframe, traj: ExposureTrajectory) -> tuple[float, f
     pts, cam = kf.points[0], kf.cameras[0]
     if pts.count == 0:
         return float("inf"), 0.0, 0.0
-    stats = _keyframe_stats(cam, jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid), traj)
+    stats = _keyframe_stats(cam, *pts.on_device, traj)
     return tuple(float(v) for v in jax.device_get(stats))
 
 

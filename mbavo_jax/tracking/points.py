@@ -7,7 +7,9 @@ Shapes never change between keyframes: each level holds exactly ``max_points`` s
 from __future__ import annotations
 
 import dataclasses
+import functools
 
+import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["PATTERN", "LevelPoints", "select_points", "downsample_depth"]
@@ -27,6 +29,11 @@ class LevelPoints:
     @property
     def count(self) -> int:
         return int(self.valid.sum())
+
+    @functools.cached_property
+    def on_device(self) -> tuple:
+        """(pixels, depths, valid) as device arrays, copied once per keyframe rather than per frame."""
+        return jnp.asarray(self.pixels), jnp.asarray(self.depths), jnp.asarray(self.valid)
 
 
 def _gradient_magnitude(img: np.ndarray) -> np.ndarray:

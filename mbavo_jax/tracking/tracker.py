@@ -147,7 +147,7 @@ class Keyframe:
     cameras: tuple  # per level, PinholeCamera
     points: tuple  # per level, LevelPoints (fixed size)
     depth: np.ndarray  # level-0 depth (metres, NaN = none)
-    depth_points: tuple = ()  # per level, LevelPoints on a grid (fixed size), for ``depth_weight``
+    depth_points: tuple  # per level, LevelPoints on a grid (fixed size), for ``depth_weight``
 
     @staticmethod
     def create(image, depth, camera: PinholeCamera, config: TrackerConfig = TrackerConfig()) -> "Keyframe":
@@ -225,7 +225,7 @@ def predicted_blur_px(keyframe: Keyframe, traj: ExposureTrajectory, level: int =
     """Mean image distance (level pixels) between the keyframe points seen at the start and end poses
     (fixed shapes: compiled once per sequence)."""
     pts = keyframe.points[level]
-    d = _mean_endpoint_distance(keyframe.cameras[level], jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid), traj)
+    d = _mean_endpoint_distance(keyframe.cameras[level], *pts.on_device, traj)
     return float(d)
 
 
@@ -360,11 +360,10 @@ def _coarse_to_fine(keyframe: Keyframe, pyr, init: ExposureTrajectory, config: T
         depth_term = None
         if depth_pyr is not None:
             dp = keyframe.depth_points[level]
-            depth_term = (depth_pyr[level], jnp.asarray(dp.pixels), jnp.asarray(dp.depths), jnp.asarray(dp.valid),
-                          config.depth_weight, config.depth_huber, config.depth_edge, tuple(config.depth_sigma))
+            depth_term = (depth_pyr[level], *dp.on_device, config.depth_weight, config.depth_huber, config.depth_edge, tuple(config.depth_sigma))
         out = _solve_level(
             keyframe.images[level], keyframe.cameras[level], pyr[level],
-            jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid),
+            *pts.on_device,
             traj, ab, config.huber, config.outlier_sigma, config.rtol, config.atol, prior_blur, config.blur_prior,
             config.blur_prior_min_rad, config.blur_prior_rel, depth_term,
             n=n, jacobian=config.jacobian, max_steps=config.max_steps[level], rigid=rigid,
@@ -448,8 +447,6 @@ def track(keyframe: Keyframe, frame, init: ExposureTrajectory | None = None, con
     if config.depth_weight > 0 and depth is not None:
         if np.shape(depth) != image.shape:
             raise ValueError(f"frame depth shape {np.shape(depth)} differs from image shape {image.shape}")
-        if not keyframe.depth_points:
-            raise ValueError("keyframe has no depth points: create it with Keyframe.create")
         depth_pyr = _depth_pyramid(depth, config.levels)
     blur0 = predicted_blur_px(keyframe, init)
     traj, ab, per_level = _coarse_to_fine(keyframe, pyr, init, config, blur0, depth_pyr)

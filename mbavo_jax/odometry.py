@@ -45,13 +45,13 @@ class OdometryConfig:
     ``keyframe_max_blur_px`` (mean blur length of the keyframe's points, full-resolution pixels): a
     blurred frame is passed over for a sharper one until the flow exceeds ``keyframe_flow_max``
     (off by default: with deblurred keyframes, waiting for sharper frames raised the ATE on our
-    640x480 benchmark, strong blur 4.4 -> 5.3 mm with 8 px, extreme 8.4 -> 13.8 mm);
+    640x480 benchmark, strong blur 3.4 -> 3.9 mm with 8 px, extreme 6.6 -> 13.7 mm);
     ``keyframe_min_visible``: a new keyframe whatever its blur when fewer than this fraction of the
     keyframe's points are still visible; ``deblur_min_blur_px``: deblur a new keyframe whose
     estimated blur exceeds this (pixels at full resolution); ``deblur_n``: the deconvolution's
     virtual frames (0 = one per pixel of the frame's blur, 95th percentile, as a power of two up to
     ``deblur_n_max``: fewer leave gaps in the blur operator and the deconvolution rings, which on
-    38-px blur doubled the ATE); ``deblur_iterations``: its CG iterations; ``deblur_regularization``: weight of its
+    37-px blur raised the ATE from 6.6 to 9.9 mm); ``deblur_iterations``: its CG iterations; ``deblur_regularization``: weight of its
     gradient penalty (2e-2: +2.6 dB PSNR, +0.01 SSIM on strong-blur 640x480 frames); ``reset_after_drops``: consecutive dropped frames
     after which the current frame becomes a keyframe at the last good pose; ``exposure_s``: exposure
     time when the sequence has none (0: sharp)."""

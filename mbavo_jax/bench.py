@@ -332,14 +332,14 @@ def _peer_odometry(seq, out: pathlib.Path, prepare, step) -> dict:
 
 
 def _deblur_quality(seq, run: pathlib.Path) -> dict:
-    """PSNR/SSIM of the deblurred keyframes (all but the first, which is used as it is) against the
-    generated sharp frames, and of the blurry input against the same."""
+    """PSNR/SSIM of the keyframe images (deblurred where blurred more than ``deblur_min_blur_px``,
+    the first one too) against the generated sharp frames, and of the blurry input against the same."""
     from .deblur import psnr, ssim
     from .io import read_tum_trajectory
 
     rows = []
     stamps, _ = read_tum_trajectory(run / "keyframes.txt")  # this run's keyframes, not stale files
-    for stamp in stamps[1:]:
+    for stamp in stamps:
         p = run / "keyframes" / f"{stamp:.6f}.png"
         k = int(np.argmin(np.abs(seq.timestamps - stamp)))
         sharp_path = pathlib.Path(seq[k].path).parent.parent / "sharp" / pathlib.Path(seq[k].path).name

@@ -4,7 +4,8 @@ For each frame: predict its exposure path by constant velocity, track it against
 keyframe (``tracking.track``), write its poses (flushed per frame), and decide whether it becomes the
 next keyframe (mean point flow and blur length, or too few visible points). A blurry frame that becomes a keyframe is
 deblurred with its estimated exposure path first (``deblur.deblur``), so later frames align against
-sharp images. Tracking failures never end the run: the frame is dropped (no pose written) and the
+sharp images; the first keyframe is deblurred once the first frame tracked against it gives the
+camera's velocity. Tracking failures never end the run: the frame is dropped (no pose written) and the
 next frames are re-initialised from the last good pose with the motion hypotheses; after
 ``reset_after_drops`` drops in a row the current frame becomes a new keyframe at the last good pose.
 
@@ -29,11 +30,11 @@ import numpy as np
 import yaml
 
 from .blur import blur_lengths
-from .deblur import choose_deblur_n, deblur
+from .deblur import choose_deblur_n, deblur, exposure_blur_px
 from .errors import ConfigError, DataError, MbavoError
 from .geometry import ExposureTrajectory, Pose
 from .io import TrajectoryWriter, read_exposure_file, read_tum_trajectory
-from .tracking import Keyframe, Status, TrackerConfig, constant_velocity_guess, track
+from .tracking import Keyframe, Status, TrackerConfig, constant_velocity_guess, exposure_from_velocity, track
 
 __all__ = ["OdometryConfig", "run_odometry", "load_config", "needs_keyframe", "sequence_calibration"]
 
@@ -54,7 +55,11 @@ class OdometryConfig:
     37-px blur raised the ATE from 6.6 to 9.9 mm); ``deblur_iterations``: its CG iterations; ``deblur_regularization``: weight of its
     gradient penalty (2e-2: +2.6 dB PSNR, +0.01 SSIM on strong-blur 640x480 frames); ``reset_after_drops``: consecutive dropped frames
     after which the current frame becomes a keyframe at the last good pose; ``exposure_s``: exposure
-    time when the sequence has none (0: sharp)."""
+    time when the sequence has none (0: sharp); ``deblur_first_keyframe``: the first frame has no
+    estimated exposure path when it becomes the first keyframe, so it is used as it is until the
+    first frame tracked against it gives the camera's velocity; then the first keyframe is deblurred
+    with the constant-velocity exposure path (if blurred more than ``deblur_min_blur_px``) and that
+    frame is tracked again against it."""
 
     keyframe_flow: float = 0.1
     keyframe_max_blur_px: float = float("inf")
@@ -67,6 +72,7 @@ class OdometryConfig:
     deblur_regularization: float = 2e-2
     reset_after_drops: int = 3
     exposure_s: float = 0.0
+    deblur_first_keyframe: bool = True
     triptychs: int = 3
 
 
@@ -226,6 +232,25 @@ def _triptych(path, blurry, reblurred, deblurred):
     cv2.imwrite(str(path), np.clip(row * 255, 0, 255).astype(np.uint8))
 
 
+def _deblur_first_keyframe(keyframe: Keyframe, first, frame, result, camera, tracker: TrackerConfig, odo: OdometryConfig, out: pathlib.Path):
+    """The first keyframe deblurred once the first frame tracked against it gives the camera's
+    velocity (constant velocity from the first keyframe's mid pose to this frame's), and this frame
+    tracked again against it. Returns (keyframe, result); the keyframe unchanged and the first result
+    when the first frame is sharp enough or the second tracking fails."""
+    image, depth, exposure, stamp = first
+    path = exposure_from_velocity(result.trajectory.middle(), max(frame.timestamp - stamp, 1e-6), exposure)
+    if exposure_blur_px(depth, camera, path)[0] <= odo.deblur_min_blur_px:
+        return keyframe, result
+    n = choose_deblur_n(depth, camera, path, odo.deblur_n, odo.deblur_n_max)
+    sharp = deblur(image, depth, camera, path, n, odo.deblur_iterations, odo.deblur_regularization, tracker.response_gamma)
+    keyframe = Keyframe.create(sharp, depth, camera, tracker)
+    _save_keyframe_image(out, stamp, sharp)
+    mid = result.trajectory.middle()  # this frame, with the same velocity: T_kf_mid ∘ path
+    init = ExposureTrajectory(mid.compose(path.start), mid.compose(path.end))
+    again = track(keyframe, frame.image, init, tracker, depth=frame.depth)
+    return keyframe, (again if again.status.ok else result)
+
+
 def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: OdometryConfig = OdometryConfig(),
                  resume: bool = False, max_frames: int | None = None, progress=sys.stderr) -> dict:
     """Track a whole RGB-D sequence; returns a summary. Writes per frame, so an interrupted run keeps
@@ -267,14 +292,17 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
         writer.writerow(["index", "timestamp", "status", "rms", "n_finest", "blur_px", "hypothesis", "ms", "keyframe"])
     prog = _Progress(n_total - start_index, progress)
     drops, consecutive_drops, tracked, triptychs = 0, 0, 0, 0
+    first_pending = None  # (image, depth, exposure, stamp) of a first keyframe not yet deblurred
     dt_default = float(np.median(np.diff(seq.timestamps))) if len(seq) > 1 else 1 / 30
     try:
         for idx in range(start_index, n_total):
             frame = seq[idx]
             exposure = frame.exposure if frame.exposure is not None else odo.exposure_s
             t0 = time.perf_counter()
-            if kf_state is None:  # first frame: the world frame, taken as sharp
+            if kf_state is None:  # first frame: the world frame, taken as sharp until its blur is known
                 kf = Keyframe.create(frame.image, frame.depth, seq.camera, tracker)
+                if odo.deblur_first_keyframe and tracker.blur_aware and exposure > 0 and frame.depth is not None:
+                    first_pending = (frame.image, frame.depth, exposure, frame.timestamp)
                 T_w = Pose.identity()
                 kf_state = (kf, T_w, frame.timestamp)
                 keyframe_count += 1
@@ -300,6 +328,10 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
                 result_status, result = Status.TOO_FEW_POINTS, None
             else:
                 result = track(kf, frame.image, init, tracker, depth=frame.depth)
+                if first_pending is not None and result.status.ok:
+                    kf, result = _deblur_first_keyframe(kf, first_pending, frame, result, seq.camera, tracker, odo, out)
+                    kf_state = (kf, T_w_kf, kf_state[2])
+                    first_pending = None
                 result_status = result.status
             ms = 1000 * (time.perf_counter() - t0)
             is_kf = 0

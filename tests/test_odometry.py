@@ -22,6 +22,7 @@ from mbavo_jax.deblur import deblur, psnr, ssim
 from mbavo_jax.geometry import ExposureTrajectory, Pose
 from mbavo_jax.io import read_image_gray, read_tum_trajectory
 from mbavo_jax.odometry import OdometryConfig, load_config, run_odometry
+from mbavo_jax.tracking import TrackerConfig
 from mbavo_jax.errors import ConfigError
 from mbavo_jax.synthetic import PRESETS, SynthConfig, generate_sequence
 
@@ -105,6 +106,18 @@ def test_config_errors():
     assert load_config(None, ["odometry.keyframe_max_blur_px=1e9"])[1].keyframe_max_blur_px == 1e9  # YAML reads 1e9 as a string
     tc, oc = load_config(pathlib.Path(__file__).parents[1] / "configs" / "default.yaml", ["tracker.n=16"])
     assert tc.n == 16 and oc.keyframe_flow == 0.1
+
+
+def test_default_config_file_lists_every_key_with_its_default():
+    """configs/default.yaml says it holds every key: it must, with the dataclasses' own defaults."""
+    import dataclasses
+
+    path = pathlib.Path(__file__).parents[1] / "configs" / "default.yaml"
+    data = yaml.safe_load(path.read_text())
+    tc, oc = load_config(path)
+    for section, cls, loaded in (("tracker", TrackerConfig, tc), ("odometry", OdometryConfig, oc)):
+        assert set(data[section]) == {f.name for f in dataclasses.fields(cls)}, section
+        assert loaded == cls(), section
 
 
 def test_bad_config_key_is_one_line_error(seq_dir, tmp_path):
@@ -225,3 +238,24 @@ def test_fresh_run_clears_keyframe_images_of_an_earlier_run(seq_dir, tmp_path):
     assert not any(p.exists() for p in stale)
     kf_stamps, _ = read_tum_trajectory(out / "keyframes.txt")
     assert sorted(p.name for p in (out / "keyframes").glob("*.png")) == sorted(f"{t:.6f}.png" for t in kf_stamps)
+
+
+def test_first_keyframe_is_deblurred_once_the_velocity_is_known(seq_dir, tmp_path):
+    """The first frame is blurred too: after frame 1 gives the velocity, keyframe 0 is replaced by its
+    deconvolution (sharper against the generated sharp frame); switched off, it stays the input."""
+    seq = open_sequence(seq_dir)
+    small = ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]"]
+    ref = read_image_gray(seq[0].path.replace("/rgb/", "/sharp/"))
+    m = np.zeros(ref.shape, bool)
+    m[8:-8, 8:-8] = True
+    scores = {}
+    for on in (True, False):
+        tc, oc = load_config(None, [*small, f"odometry.deblur_first_keyframe={str(on).lower()}"])
+        out = tmp_path / str(on)
+        summary = run_odometry(seq, out, tc, oc, max_frames=3, progress=None)
+        assert summary["tracked"] == 3
+        t0 = read_tum_trajectory(out / "keyframes.txt")[0][0]
+        kf0 = read_image_gray(out / "keyframes" / f"{t0:.6f}.png")
+        scores[on] = psnr(kf0, ref, m)
+    blurry = psnr(seq[0].image, ref, m)
+    assert abs(scores[False] - blurry) < 0.1 and scores[True] > blurry + 1.0, (scores, blurry)

@@ -17,7 +17,7 @@ from mbavo_jax.geometry import ExposureTrajectory, Pose
 from mbavo_jax.io import read_image_gray
 from mbavo_jax.synthetic import SynthConfig, generate_sequence
 from mbavo_jax.synthetic.generator import PRESETS
-from mbavo_jax.tracking import Keyframe, Status, TrackerConfig, choose_n, constant_velocity_guess, track
+from mbavo_jax.tracking import Keyframe, Status, TrackerConfig, choose_n, constant_velocity_guess, exposure_from_velocity, track
 from mbavo_jax.tracking import tracker as tracker_mod
 from mbavo_jax.tracking.residuals import LevelProblem, make_residual_fn, residuals_and_jacobian
 
@@ -229,6 +229,24 @@ def test_depth_term_off_changes_nothing_and_checks_shape(strong):
     assert not b.diagnostics["depth_term"]
     with pytest.raises(ValueError, match="depth shape"):
         track(kf, frame, init, dataclasses.replace(SMALL, depth_weight=1.0), depth=np.ones((10, 10), np.float32))
+
+
+def test_exposure_from_velocity_matches_the_generated_exposure(strong):
+    """The exposure path of a frame about its own mid pose, from the motion to the next frame
+    (constant velocity: how the first keyframe gets its path), against the generator's path."""
+    _, mids = strong.groundtruth
+    _, S, E = strong.exposure_paths
+    tau = strong.exposures[0]
+    kf = Keyframe.create(strong[2].image, strong[2].depth, strong.camera, SMALL)
+    for k in (1, 2, 3):
+        T_mid = P(mids[k])
+        V = T_mid.inverse().compose(P(mids[k + 1]))
+        est = exposure_from_velocity(V, 1 / 30, tau)
+        gt = ExposureTrajectory(T_mid.inverse().compose(P(S[k])), T_mid.inverse().compose(P(E[k])))
+        assert np.allclose(np.asarray(est.middle().to_vector()), [0, 0, 0, 0, 0, 0, 1], atol=1e-5)
+        still = ExposureTrajectory(Pose.identity(), Pose.identity())
+        blur = endpoint_error(kf, still, gt)  # how far the exposure endpoints are from the mid pose
+        assert blur > 2.0 and endpoint_error(kf, est, gt) < 0.1 * blur, (k, blur, endpoint_error(kf, est, gt))
 
 
 def test_depth_term_pins_the_mid_pose(strong):

@@ -1,6 +1,6 @@
 """The blur-aware tracker (points, residuals with two Jacobian paths, coarse-to-fine LM)."""
 
-from .motion import constant_velocity_guess, pose_power
+from .motion import constant_velocity_guess, exposure_from_velocity, pose_power
 from .points import PATTERN, LevelPoints, select_points
 from .tracker import Keyframe, Status, TrackerConfig, TrackResult, choose_n, motion_hypotheses, predicted_blur_px, track
 
@@ -17,5 +17,6 @@ __all__ = [
     "predicted_blur_px",
     "motion_hypotheses",
     "constant_velocity_guess",
+    "exposure_from_velocity",
     "pose_power",
 ]

@@ -8,12 +8,20 @@ from ..geometry import quaternion as quat
 from ..geometry.pose import Pose
 from ..geometry.trajectory import ExposureTrajectory
 
-__all__ = ["pose_power", "constant_velocity_guess"]
+__all__ = ["pose_power", "exposure_from_velocity", "constant_velocity_guess"]
 
 
 def pose_power(T: Pose, alpha: float) -> Pose:
     """T^α with the same decomposition as Eqs. 43-44: rotation exp(α log q), translation α t."""
     return Pose(quat.exp(alpha * quat.log(T.q)), alpha * T.t)
+
+
+def exposure_from_velocity(V: Pose, frame_dt: float, exposure: float) -> ExposureTrajectory:
+    """Exposure path of a frame about its own mid-exposure pose, (T_mid_start, T_mid_end), when the
+    camera moves by ``V`` (body frame) every ``frame_dt`` seconds and the exposure lasts ``exposure``
+    seconds: V^(-e/2dt) and V^(+e/2dt), interpolated as in Eqs. 43-44."""
+    half = 0.5 * exposure / frame_dt
+    return ExposureTrajectory(pose_power(V, -half), pose_power(V, half))
 
 
 def constant_velocity_guess(
@@ -25,8 +33,7 @@ def constant_velocity_guess(
     gap = frame_dt if gap is None else gap
     V = T_world_prev.inverse().compose(T_world_last)  # motion over one frame interval (body frame)
     mid = T_world_last.compose(pose_power(V, gap / frame_dt))
-    half = 0.5 * exposure / frame_dt
-    start = mid.compose(pose_power(V, -half))
-    end = mid.compose(pose_power(V, half))
+    about_mid = exposure_from_velocity(V, frame_dt, exposure)
+    start, end = mid.compose(about_mid.start), mid.compose(about_mid.end)
     ref_inv = T_world_ref.inverse()
     return ExposureTrajectory(ref_inv.compose(start), ref_inv.compose(end))

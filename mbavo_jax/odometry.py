@@ -232,6 +232,13 @@ def _triptych(path, blurry, reblurred, deblurred):
     cv2.imwrite(str(path), np.clip(row * 255, 0, 255).astype(np.uint8))
 
 
+def _deblurred(image, depth, camera, path: ExposureTrajectory, tracker: TrackerConfig, odo: OdometryConfig):
+    """(sharp image, virtual frames used): ``image`` deconvolved along its exposure ``path`` (in any
+    reference frame) with the odometry's deblur settings; the triptych needs the same ``n``."""
+    n = choose_deblur_n(depth, camera, path, odo.deblur_n, odo.deblur_n_max)
+    return deblur(image, depth, camera, path, n, odo.deblur_iterations, odo.deblur_regularization, tracker.response_gamma), n
+
+
 def _deblur_first_keyframe(keyframe: Keyframe, first, frame, result, camera, tracker: TrackerConfig, odo: OdometryConfig, out: pathlib.Path):
     """The first keyframe deblurred once the first frame tracked against it gives the camera's
     velocity (constant velocity from the first keyframe's mid pose to this frame's), and this frame
@@ -241,8 +248,7 @@ def _deblur_first_keyframe(keyframe: Keyframe, first, frame, result, camera, tra
     path = exposure_from_velocity(result.trajectory.middle(), max(frame.timestamp - stamp, 1e-6), exposure)
     if exposure_blur_px(depth, camera, path)[0] <= odo.deblur_min_blur_px:
         return keyframe, result
-    n = choose_deblur_n(depth, camera, path, odo.deblur_n, odo.deblur_n_max)
-    sharp = deblur(image, depth, camera, path, n, odo.deblur_iterations, odo.deblur_regularization, tracker.response_gamma)
+    sharp, _ = _deblurred(image, depth, camera, path, tracker, odo)
     keyframe = Keyframe.create(sharp, depth, camera, tracker)
     _save_keyframe_image(out, stamp, sharp)
     mid = result.trajectory.middle()  # this frame, with the same velocity: T_kf_mid ∘ path
@@ -350,8 +356,7 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
                 if need_kf and frame.depth is not None:
                     sharp = frame.image
                     if blur > odo.deblur_min_blur_px and tracker.blur_aware:
-                        n_deblur = choose_deblur_n(frame.depth, seq.camera, traj, odo.deblur_n, odo.deblur_n_max)
-                        sharp = deblur(frame.image, frame.depth, seq.camera, traj, n_deblur, odo.deblur_iterations, odo.deblur_regularization, tracker.response_gamma)
+                        sharp, n_deblur = _deblurred(frame.image, frame.depth, seq.camera, traj, tracker, odo)
                         if triptychs < odo.triptychs:
                             from .blur import plane_depths_from_keyframe, render_blurry
                             from .deblur import exposure_about_mid

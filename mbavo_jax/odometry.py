@@ -4,8 +4,9 @@ For each frame: predict its exposure path by constant velocity, track it against
 keyframe (``tracking.track``), write its poses (flushed per frame), and decide whether it becomes the
 next keyframe (mean point flow and blur length, or too few visible points). A blurry frame that becomes a keyframe is
 deblurred with its estimated exposure path first (``deblur.deblur``), so later frames align against
-sharp images; the first keyframe is deblurred once the first frame tracked against it gives the
-camera's velocity. Tracking failures never end the run: the frame is dropped (no pose written) and the
+sharp images; a keyframe made without an estimated path (the first frame, or the current frame
+after repeated drops) is deblurred once the first frame tracked against it gives the camera's
+velocity. Tracking failures never end the run: the frame is dropped (no pose written) and the
 next frames are re-initialised from the last good pose with the motion hypotheses; after
 ``reset_after_drops`` drops in a row the current frame becomes a new keyframe at the last good pose.
 
@@ -55,11 +56,11 @@ class OdometryConfig:
     37-px blur raised the ATE from 6.6 to 9.9 mm); ``deblur_iterations``: its CG iterations; ``deblur_regularization``: weight of its
     gradient penalty (2e-2: +2.6 dB PSNR, +0.01 SSIM on strong-blur 640x480 frames); ``reset_after_drops``: consecutive dropped frames
     after which the current frame becomes a keyframe at the last good pose; ``exposure_s``: exposure
-    time when the sequence has none (0: sharp); ``deblur_first_keyframe``: the first frame has no
-    estimated exposure path when it becomes the first keyframe, so it is used as it is until the
-    first frame tracked against it gives the camera's velocity; then the first keyframe is deblurred
-    with the constant-velocity exposure path (if blurred more than ``deblur_min_blur_px``) and that
-    frame is tracked again against it."""
+    time when the sequence has none (0: sharp); ``deblur_first_keyframe``: the first frame (and a
+    frame made a keyframe after ``reset_after_drops``) has no estimated exposure path when it becomes
+    a keyframe, so it is used as it is until the first frame tracked against it gives the camera's
+    velocity; then that keyframe is deblurred with the constant-velocity exposure path (if blurred
+    more than ``deblur_min_blur_px``) and the frame is tracked again against it."""
 
     keyframe_flow: float = 0.1
     keyframe_max_blur_px: float = float("inf")
@@ -239,12 +240,13 @@ def _deblurred(image, depth, camera, path: ExposureTrajectory, tracker: TrackerC
     return deblur(image, depth, camera, path, n, odo.deblur_iterations, odo.deblur_regularization, tracker.response_gamma), n
 
 
-def _deblur_first_keyframe(keyframe: Keyframe, first, frame, result, camera, tracker: TrackerConfig, odo: OdometryConfig, out: pathlib.Path):
-    """The first keyframe deblurred once the first frame tracked against it gives the camera's
-    velocity (constant velocity from the first keyframe's mid pose to this frame's), and this frame
-    tracked again against it. Returns (keyframe, result); the keyframe unchanged and the first result
-    when the first frame is sharp enough or the second tracking fails."""
-    image, depth, exposure, stamp = first
+def _deblur_pending_keyframe(keyframe: Keyframe, pending, frame, result, camera, tracker: TrackerConfig, odo: OdometryConfig, out: pathlib.Path):
+    """A keyframe made without an exposure path (the first frame, or a reset after drops) deblurred
+    once the first frame tracked against it gives the camera's velocity (constant velocity from the
+    keyframe's mid pose to this frame's), and this frame tracked again against it. Returns
+    (keyframe, result); the keyframe unchanged and the first result when the keyframe is sharp
+    enough or the second tracking fails."""
+    image, depth, exposure, stamp = pending
     path = exposure_from_velocity(result.trajectory.middle(), max(frame.timestamp - stamp, 1e-6), exposure)
     if exposure_blur_px(depth, camera, path)[0] <= odo.deblur_min_blur_px:
         return keyframe, result
@@ -298,7 +300,8 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
         writer.writerow(["index", "timestamp", "status", "rms", "n_finest", "blur_px", "hypothesis", "ms", "keyframe"])
     prog = _Progress(n_total - start_index, progress)
     drops, consecutive_drops, tracked, triptychs = 0, 0, 0, 0
-    first_pending = None  # (image, depth, exposure, stamp) of a first keyframe not yet deblurred
+    pending = None  # (image, depth, exposure, stamp) of a keyframe made without an exposure path, not yet deblurred
+    deblur_pending = odo.deblur_first_keyframe and tracker.blur_aware
     dt_default = float(np.median(np.diff(seq.timestamps))) if len(seq) > 1 else 1 / 30
     try:
         for idx in range(start_index, n_total):
@@ -307,8 +310,8 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
             t0 = time.perf_counter()
             if kf_state is None:  # first frame: the world frame, taken as sharp until its blur is known
                 kf = Keyframe.create(frame.image, frame.depth, seq.camera, tracker)
-                if odo.deblur_first_keyframe and tracker.blur_aware and exposure > 0 and frame.depth is not None:
-                    first_pending = (frame.image, frame.depth, exposure, frame.timestamp)
+                if deblur_pending and exposure > 0 and frame.depth is not None:
+                    pending = (frame.image, frame.depth, exposure, frame.timestamp)
                 T_w = Pose.identity()
                 kf_state = (kf, T_w, frame.timestamp)
                 keyframe_count += 1
@@ -334,10 +337,10 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
                 result_status, result = Status.TOO_FEW_POINTS, None
             else:
                 result = track(kf, frame.image, init, tracker, depth=frame.depth)
-                if first_pending is not None and result.status.ok:
-                    kf, result = _deblur_first_keyframe(kf, first_pending, frame, result, seq.camera, tracker, odo, out)
+                if pending is not None and result.status.ok:
+                    kf, result = _deblur_pending_keyframe(kf, pending, frame, result, seq.camera, tracker, odo, out)
                     kf_state = (kf, T_w_kf, kf_state[2])
-                    first_pending = None
+                    pending = None
                 result_status = result.status
             ms = 1000 * (time.perf_counter() - t0)
             is_kf = 0
@@ -382,6 +385,7 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
                 if consecutive_drops >= odo.reset_after_drops and frame.depth is not None and np.isfinite(frame.depth).any() and np.std(frame.image) > 1e-3:
                     T_last = mids[-1][1]
                     kf_state = (Keyframe.create(frame.image, frame.depth, seq.camera, tracker), T_last, frame.timestamp)
+                    pending = (frame.image, frame.depth, exposure, frame.timestamp) if deblur_pending and exposure > 0 else None
                     keyframe_count += 1
                     _save_keyframe_image(out, frame.timestamp, frame.image)
                     kf_w.write(frame.timestamp, _pose_vec(T_last))

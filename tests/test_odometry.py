@@ -259,3 +259,34 @@ def test_first_keyframe_is_deblurred_once_the_velocity_is_known(seq_dir, tmp_pat
         scores[on] = psnr(kf0, ref, m)
     blurry = psnr(seq[0].image, ref, m)
     assert abs(scores[False] - blurry) < 0.1 and scores[True] > blurry + 1.0, (scores, blurry)
+
+
+def test_keyframe_made_after_drops_is_deblurred_like_the_first(seq_dir, tmp_path, monkeypatch):
+    """Frames 10-12 are reported lost (the real tracker's result with status LOST), so frame 12
+    becomes a keyframe at the last good pose without an exposure path; once frame 13 tracks against
+    it, it is replaced by its deconvolution, as the first keyframe is. (Deblurred with the generator's
+    own path, frame 12 gains 1.0 dB.)"""
+    import dataclasses as dc
+
+    import mbavo_jax.odometry as odometry
+    from mbavo_jax.tracking import Status
+
+    seq = open_sequence(seq_dir)
+    lost = [seq[i].image for i in (10, 11, 12)]
+    real_track = odometry.track
+
+    def track(kf, image, init, config, **kw):
+        result = real_track(kf, image, init, config, **kw)
+        return dc.replace(result, status=Status.LOST) if any(np.array_equal(image, x) for x in lost) else result
+
+    monkeypatch.setattr(odometry, "track", track)
+    tc, oc = load_config(None, ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]"])
+    summary = run_odometry(seq, tmp_path / "run", tc, oc, max_frames=14, progress=None)
+    assert summary["dropped"] == 3
+    stamp = seq[12].timestamp
+    assert any(abs(t - stamp) < 1e-6 for t in read_tum_trajectory(tmp_path / "run" / "keyframes.txt")[0])
+    ref = read_image_gray(seq[12].path.replace("/rgb/", "/sharp/"))
+    m = np.zeros(ref.shape, bool)
+    m[8:-8, 8:-8] = True
+    kf12 = read_image_gray(tmp_path / "run" / "keyframes" / f"{stamp:.6f}.png")
+    assert psnr(kf12, ref, m) > psnr(seq[12].image, ref, m) + 0.5

@@ -240,21 +240,22 @@ def _deblurred(image, depth, camera, path: ExposureTrajectory, tracker: TrackerC
     return deblur(image, depth, camera, path, n, odo.deblur_iterations, odo.deblur_regularization, tracker.response_gamma), n
 
 
-def _deblur_pending_keyframe(keyframe: Keyframe, pending, frame, result, camera, tracker: TrackerConfig, odo: OdometryConfig, out: pathlib.Path):
+def _deblur_pending_keyframe(keyframe: Keyframe, stamp: float, pending, frame, result, camera, tracker: TrackerConfig, odo: OdometryConfig,
+                             out: pathlib.Path):
     """A keyframe made without an exposure path (the first frame, or a reset after drops) deblurred
     once the first frame tracked against it gives the camera's velocity (constant velocity from the
     keyframe's mid pose to this frame's), and this frame tracked again against it. Returns
     (keyframe, result); the keyframe unchanged and the first result when the keyframe is sharp
     enough or the second tracking fails."""
-    image, depth, exposure, stamp = pending
-    path = exposure_from_velocity(result.trajectory.middle(), max(frame.timestamp - stamp, 1e-6), exposure)
+    image, depth, exposure = pending
+    mid = result.trajectory.middle()  # T_kf_mid of this frame: the motion over frame.timestamp - stamp
+    path = exposure_from_velocity(mid, max(frame.timestamp - stamp, 1e-6), exposure)
     if exposure_blur_px(depth, camera, path)[0] <= odo.deblur_min_blur_px:
         return keyframe, result
     sharp, _ = _deblurred(image, depth, camera, path, tracker, odo)
     keyframe = Keyframe.create(sharp, depth, camera, tracker)
     _save_keyframe_image(out, stamp, sharp)
-    mid = result.trajectory.middle()  # this frame, with the same velocity: T_kf_mid ∘ path
-    init = ExposureTrajectory(mid.compose(path.start), mid.compose(path.end))
+    init = ExposureTrajectory(mid.compose(path.start), mid.compose(path.end))  # same velocity: T_kf_mid ∘ path
     again = track(keyframe, frame.image, init, tracker, depth=frame.depth)
     return keyframe, (again if again.status.ok else result)
 
@@ -300,8 +301,21 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
         writer.writerow(["index", "timestamp", "status", "rms", "n_finest", "blur_px", "hypothesis", "ms", "keyframe"])
     prog = _Progress(n_total - start_index, progress)
     drops, consecutive_drops, tracked, triptychs = 0, 0, 0, 0
-    pending = None  # (image, depth, exposure, stamp) of a keyframe made without an exposure path, not yet deblurred
+    pending = None  # (image, depth, exposure) of the current keyframe while it waits to be deblurred
     deblur_pending = odo.deblur_first_keyframe and tracker.blur_aware
+
+    def keyframe_without_path(frame, T_w_kf: Pose, exposure: float):
+        """(kf_state, pending) of a keyframe at ``T_w_kf`` from a frame whose exposure path is not
+        known (the first frame, a reset after drops): used as it is, and deblurred once the next
+        frame tracked against it gives the velocity (``_deblur_pending_keyframe``)."""
+        nonlocal keyframe_count
+        keyframe_count += 1
+        _save_keyframe_image(out, frame.timestamp, frame.image)
+        kf_w.write(frame.timestamp, _pose_vec(T_w_kf))
+        state = (Keyframe.create(frame.image, frame.depth, seq.camera, tracker), T_w_kf, frame.timestamp)
+        wait = deblur_pending and exposure > 0 and frame.depth is not None
+        return state, ((frame.image, frame.depth, exposure) if wait else None)
+
     dt_default = float(np.median(np.diff(seq.timestamps))) if len(seq) > 1 else 1 / 30
     try:
         for idx in range(start_index, n_total):
@@ -309,14 +323,8 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
             exposure = frame.exposure if frame.exposure is not None else odo.exposure_s
             t0 = time.perf_counter()
             if kf_state is None:  # first frame: the world frame, taken as sharp until its blur is known
-                kf = Keyframe.create(frame.image, frame.depth, seq.camera, tracker)
-                if deblur_pending and exposure > 0 and frame.depth is not None:
-                    pending = (frame.image, frame.depth, exposure, frame.timestamp)
                 T_w = Pose.identity()
-                kf_state = (kf, T_w, frame.timestamp)
-                keyframe_count += 1
-                _save_keyframe_image(out, frame.timestamp, frame.image)
-                kf_w.write(frame.timestamp, _pose_vec(T_w))
+                kf_state, pending = keyframe_without_path(frame, T_w, exposure)
                 traj_w.write(frame.timestamp, _pose_vec(T_w))
                 exp_w.write(frame.timestamp, _pose_vec(T_w), _pose_vec(T_w))
                 mids.append((frame.timestamp, T_w))
@@ -338,7 +346,7 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
             else:
                 result = track(kf, frame.image, init, tracker, depth=frame.depth)
                 if pending is not None and result.status.ok:
-                    kf, result = _deblur_pending_keyframe(kf, pending, frame, result, seq.camera, tracker, odo, out)
+                    kf, result = _deblur_pending_keyframe(kf, kf_state[2], pending, frame, result, seq.camera, tracker, odo, out)
                     kf_state = (kf, T_w_kf, kf_state[2])
                     pending = None
                 result_status = result.status
@@ -383,12 +391,7 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
                 if mids:
                     mids = [mids[-1]]
                 if consecutive_drops >= odo.reset_after_drops and frame.depth is not None and np.isfinite(frame.depth).any() and np.std(frame.image) > 1e-3:
-                    T_last = mids[-1][1]
-                    kf_state = (Keyframe.create(frame.image, frame.depth, seq.camera, tracker), T_last, frame.timestamp)
-                    pending = (frame.image, frame.depth, exposure, frame.timestamp) if deblur_pending and exposure > 0 else None
-                    keyframe_count += 1
-                    _save_keyframe_image(out, frame.timestamp, frame.image)
-                    kf_w.write(frame.timestamp, _pose_vec(T_last))
+                    kf_state, pending = keyframe_without_path(frame, mids[-1][1], exposure)
                     consecutive_drops = 0
                     is_kf = 1
             diag = result.diagnostics if result is not None else {}

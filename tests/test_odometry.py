@@ -26,11 +26,20 @@ from mbavo_jax.tracking import TrackerConfig
 from mbavo_jax.errors import ConfigError
 from mbavo_jax.synthetic import PRESETS, SynthConfig, generate_sequence
 
-SMALL = ["--set", "tracker.levels=3", "--set", "tracker.points=[192,128,64]", "--set", "tracker.cell=[10,7,5]", "--set", "tracker.max_steps=[10,12,20]"]
+SMALL_SET = ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]"]
+SMALL = [arg for item in SMALL_SET for arg in ("--set", item)]
 
 
 def mbavo(*args, **kw):
     return subprocess.run([sys.executable, "-m", "mbavo_jax.cli", *map(str, args)], capture_output=True, text=True, **kw)
+
+
+def psnr_to_sharp(seq, k, image):
+    """PSNR of ``image`` against frame k's generated sharp mid-exposure image, 8-px border left out."""
+    ref = read_image_gray(seq[k].path.replace("/rgb/", "/sharp/"))
+    m = np.zeros(ref.shape, bool)
+    m[8:-8, 8:-8] = True
+    return psnr(image, ref, m)
 
 
 @pytest.fixture(scope="module")
@@ -138,7 +147,7 @@ def test_black_frame_nan_depth_and_jump_are_lost_frames_not_crashes(seq_dir, tmp
     seq = open_sequence(bad)
     from mbavo_jax.odometry import load_config
 
-    tc, oc = load_config(None, ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]", "tracker.response_gamma=2.2"])
+    tc, oc = load_config(None, [*SMALL_SET, "tracker.response_gamma=2.2"])
     summary = run_odometry(seq, tmp_path / "run", tc, oc, progress=None)
     assert summary["frames"] == 16 and 1 <= summary["dropped"] <= 4
     rows = (tmp_path / "run" / "frames.csv").read_text().splitlines()
@@ -233,7 +242,7 @@ def test_fresh_run_clears_keyframe_images_of_an_earlier_run(seq_dir, tmp_path):
     for p in stale:
         cv2.imwrite(str(p), np.zeros((4, 4), np.uint8))
     seq = open_sequence(seq_dir)
-    tc, oc = load_config(None, ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]"])
+    tc, oc = load_config(None, SMALL_SET)
     run_odometry(seq, out, tc, oc, max_frames=2, progress=None)
     assert not any(p.exists() for p in stale)
     kf_stamps, _ = read_tum_trajectory(out / "keyframes.txt")
@@ -244,20 +253,16 @@ def test_first_keyframe_is_deblurred_once_the_velocity_is_known(seq_dir, tmp_pat
     """The first frame is blurred too: after frame 1 gives the velocity, keyframe 0 is replaced by its
     deconvolution (sharper against the generated sharp frame); switched off, it stays the input."""
     seq = open_sequence(seq_dir)
-    small = ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]"]
-    ref = read_image_gray(seq[0].path.replace("/rgb/", "/sharp/"))
-    m = np.zeros(ref.shape, bool)
-    m[8:-8, 8:-8] = True
     scores = {}
     for on in (True, False):
-        tc, oc = load_config(None, [*small, f"odometry.deblur_first_keyframe={str(on).lower()}"])
+        tc, oc = load_config(None, [*SMALL_SET, f"odometry.deblur_first_keyframe={str(on).lower()}"])
         out = tmp_path / str(on)
         summary = run_odometry(seq, out, tc, oc, max_frames=3, progress=None)
         assert summary["tracked"] == 3
         t0 = read_tum_trajectory(out / "keyframes.txt")[0][0]
         kf0 = read_image_gray(out / "keyframes" / f"{t0:.6f}.png")
-        scores[on] = psnr(kf0, ref, m)
-    blurry = psnr(seq[0].image, ref, m)
+        scores[on] = psnr_to_sharp(seq, 0, kf0)
+    blurry = psnr_to_sharp(seq, 0, seq[0].image)
     assert abs(scores[False] - blurry) < 0.1 and scores[True] > blurry + 1.0, (scores, blurry)
 
 
@@ -280,13 +285,10 @@ def test_keyframe_made_after_drops_is_deblurred_like_the_first(seq_dir, tmp_path
         return dc.replace(result, status=Status.LOST) if any(np.array_equal(image, x) for x in lost) else result
 
     monkeypatch.setattr(odometry, "track", track)
-    tc, oc = load_config(None, ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]"])
+    tc, oc = load_config(None, SMALL_SET)
     summary = run_odometry(seq, tmp_path / "run", tc, oc, max_frames=14, progress=None)
     assert summary["dropped"] == 3
     stamp = seq[12].timestamp
     assert any(abs(t - stamp) < 1e-6 for t in read_tum_trajectory(tmp_path / "run" / "keyframes.txt")[0])
-    ref = read_image_gray(seq[12].path.replace("/rgb/", "/sharp/"))
-    m = np.zeros(ref.shape, bool)
-    m[8:-8, 8:-8] = True
     kf12 = read_image_gray(tmp_path / "run" / "keyframes" / f"{stamp:.6f}.png")
-    assert psnr(kf12, ref, m) > psnr(seq[12].image, ref, m) + 0.5
+    assert psnr_to_sharp(seq, 12, kf12) > psnr_to_sharp(seq, 12, seq[12].image) + 0.5

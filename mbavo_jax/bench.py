@@ -371,15 +371,25 @@ def _ate(t_gt, p_gt, run: pathlib.Path) -> float:
 ODOMETRY_METHODS = ("ours_n64", "ours_n1", "ours_adaptive", "ours_n64_depth", "ours_n1_depth", "open3d", "open3d_color", "opencv")
 
 
+def _check_methods(methods):
+    from .errors import MbavoError
+
+    unknown = sorted(set(methods) - set(ODOMETRY_METHODS))
+    if unknown or not methods:
+        raise MbavoError(f"unknown benchmark method(s) {', '.join(unknown) or '(none left)'}; choose from {', '.join(ODOMETRY_METHODS)}")
+
+
 def run_odometry_benchmark(sequences: dict, out_root, progress=sys.stderr, tracker_overrides: dict | None = None,
-                           depth_weight: float = 0.01) -> dict:
+                           depth_weight: float = 0.03, methods=ODOMETRY_METHODS) -> dict:
     """ATE (SE3) and frame drops for ours n=64, n=1, adaptive n (images only, as MBA-VO), ours n=64
     and n=1 with the current frame's depth (``depth_weight``, noise model from camera.yaml), Open3D
     (hybrid and colour terms) and OpenCV RGB-D odometry on each sequence. Our seconds per frame is
     the whole loop's wall time (compilation, keyframe selection and deblurring included); the
     peers' is their median odometry call. ``tracker_overrides``: TrackerConfig fields for our runs
-    (e.g. small images)."""
+    (e.g. small images). ``methods``: the subset of :data:`ODOMETRY_METHODS` to run."""
     from .odometry import OdometryConfig, run_odometry
+
+    _check_methods(methods)
 
     out_root = pathlib.Path(out_root)
     results = {}
@@ -393,6 +403,7 @@ def run_odometry_benchmark(sequences: dict, out_root, progress=sys.stderr, track
             "ours_n64_depth": dataclasses.replace(base, depth_weight=depth_weight),
             "ours_n1_depth": dataclasses.replace(base, blur_aware=False, depth_weight=depth_weight),
         }
+        configs = {m: c for m, c in configs.items() if m in methods}
         row = {}
         t_gt, p_gt = seq.groundtruth
         for method, cfg in configs.items():
@@ -409,7 +420,7 @@ def run_odometry_benchmark(sequences: dict, out_root, progress=sys.stderr, track
             if method == "ours_n64":
                 row[method]["deblur"] = _deblur_quality(seq, run)
         peers = {"open3d": lambda: _open3d_step(seq, "hybrid"), "open3d_color": lambda: _open3d_step(seq, "color"), "opencv": lambda: _opencv_step(seq)}
-        for method, make in peers.items():
+        for method, make in ((m, mk) for m, mk in peers.items() if m in methods):
             try:
                 prepare, step = make()
             except ImportError as exc:
@@ -421,7 +432,7 @@ def run_odometry_benchmark(sequences: dict, out_root, progress=sys.stderr, track
             row[method] = {"ate_rmse_m": _ate(t_gt, p_gt, out_root / name / method), "frame_drop_rate": p_sum["dropped"] / p_sum["frames"],
                            "seconds_per_frame": p_sum["median_ms"] / 1000}
         blur = yaml.safe_load((pathlib.Path(path) / "synth.yaml").read_text()).get("mean_blur_px") if (pathlib.Path(path) / "synth.yaml").is_file() else None
-        results[name] = {"mean_blur_px": blur, "frames": len(seq), "depth_sigma": list(base.depth_sigma), "methods": row}
+        results[name] = {"mean_blur_px": blur, "frames": len(seq), "depth_sigma": list(base.depth_sigma), "depth_weight": depth_weight, "methods": row}
     return results
 
 
@@ -463,6 +474,10 @@ def main_odometry(args) -> int:
     from .synthetic import blur_real_sequence
 
     progress = None if args.quiet else sys.stderr
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else list(ODOMETRY_METHODS)
+    if args.no_peers:
+        methods = [m for m in methods if m.startswith("ours_")]
+    _check_methods(methods)
     root = pathlib.Path(args.out)
     seqs = {}
     a = argparse_ns(frames=args.frames - 2, width=args.width, height=args.height, seed=args.seed, quiet=args.quiet)
@@ -476,7 +491,7 @@ def main_odometry(args) -> int:
         if not (tum_out / "exposure.txt").is_file():
             blur_real_sequence(open_sequence(tum_src), tum_out, blur_px=20.0, progress=progress)
         seqs["tum_blurred"] = tum_out
-    res = run_odometry_benchmark(seqs, root, progress=progress)
+    res = run_odometry_benchmark(seqs, root, progress=progress, depth_weight=args.depth_weight, methods=methods)
     print(json.dumps(res, indent=2) if args.format == "json" else format_odometry_table(res))
     (root / "results.json").write_text(json.dumps(res, indent=2))
     return 0

@@ -323,6 +323,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="odometry: presets generated again with Kinect-class depth (--depth-model sensor; '' to skip)")
     p.add_argument("--tum", default="../shared/data/tum_fr1_xyz_head37", help="odometry: real RGB-D clip to blur ('' to skip)")
     p.add_argument("--out", default="runs/bench_odometry", help="odometry: output folder")
+    p.add_argument("--methods", default="", help="odometry: comma-separated subset of " + ", ".join(__import__("mbavo_jax.bench", fromlist=["x"]).ODOMETRY_METHODS) + " (default all)")
+    p.add_argument("--depth-weight", dest="depth_weight", type=float, default=0.03,
+                   help="odometry: tracker.depth_weight of the *_depth methods (default 0.03)")
     p.add_argument("--format", choices=["table", "json"], default="table")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=lambda a: getattr(__import__("mbavo_jax.bench", fromlist=["x"]), f"main_{a.what}")(a))

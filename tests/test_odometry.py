@@ -206,6 +206,20 @@ def test_odometry_benchmark_runs_every_method(tmp_path):
     assert row["ours_n64"]["ate_rmse_m"] < 0.02
     table = format_odometry_table(res)
     assert "ours_adaptive" in table and "ours_n64_depth" in table and "opencv" in table and "deblurred keyframes" in table
+    assert res["strong"]["depth_weight"] == 0.03
+    again = run_odometry_benchmark({"strong": tmp_path / "seq"}, tmp_path / "bench2", progress=None, tracker_overrides=small,
+                                   methods=["ours_n1_depth", "opencv"], depth_weight=0.01)
+    assert set(again["strong"]["methods"]) == {"ours_n1_depth", "opencv"} and again["strong"]["depth_weight"] == 0.01
+    assert "ours_n64 " not in format_odometry_table(again)
+
+
+def test_odometry_benchmark_rejects_unknown_methods_before_any_work(tmp_path):
+    r = mbavo("bench", "odometry", "--methods", "ours_n64,icp", "--out", tmp_path / "b", "--presets", "mild")
+    assert r.returncode == 1 and r.stderr.strip() == (
+        "mbavo: error: unknown benchmark method(s) icp; choose from "
+        "ours_n64, ours_n1, ours_adaptive, ours_n64_depth, ours_n1_depth, open3d, open3d_color, opencv"
+    )
+    assert not (tmp_path / "b").exists()
 
 
 def test_missing_depth_mid_run_is_one_line_error_and_keeps_finished_poses(seq_dir, tmp_path):

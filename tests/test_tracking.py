@@ -221,6 +221,45 @@ def test_depth_residuals_vanish_at_truth_and_have_finite_gradients(strong):
     assert np.all(np.isfinite(np.asarray(grad))) and np.any(np.asarray(grad) != 0)
 
 
+def test_depth_residuals_drop_occluded_points(strong):
+    """A foreground object in the current depth map hides keyframe points: their residuals are
+    hundreds of σ; beyond ``outlier`` σ they are invalid instead of pulling the pose."""
+    from mbavo_jax.tracking.geometric import depth_residuals, select_depth_points
+
+    kf, _, _, gt = case(strong, 2, SMALL)
+    dp = select_depth_points(kf.depth, 8)
+    cur = np.nan_to_num(strong[3].depth, nan=0.0)
+    cur[30:90, 40:120] = 0.3  # an object 0.3 m from the camera
+    args = (kf.cameras[0], jnp.asarray(cur), jnp.asarray(dp.pixels), jnp.asarray(dp.depths), jnp.asarray(dp.valid), 0.02, (0.0005, 0.0))
+    r_all, ok_all = (np.asarray(x) for x in depth_residuals(gt.middle(), *args))
+    r_cut, ok_cut = (np.asarray(x) for x in depth_residuals(gt.middle(), *args, 20.0))
+    hidden = ok_all & (np.abs(r_all) >= 20.0)
+    assert hidden.sum() >= 10 and np.all(r_all[hidden] < -100)  # the object is nearer than the scene
+    assert not ok_cut[hidden].any() and np.all(r_cut[hidden] == 0)
+    assert np.array_equal(ok_cut, ok_all & ~hidden) and np.allclose(r_cut[ok_cut], r_all[ok_cut])
+
+
+def test_stiff_depth_term_with_an_occluder_still_lands(strong):
+    """Exact depth weighted 100x the maximum-likelihood balance and an object in front of the
+    scene: the mid pose must stay as good as the images-only estimate. Needs both guards: occluded
+    points dropped (``depth_outlier``) and no depth on the coarsest level (``depth_levels`` 2 of 3,
+    as the docstring advises for stiff weights)."""
+    stiff = dataclasses.replace(SMALL, depth_weight=1.0, depth_sigma=(0.0005, 0.0), depth_levels=2)
+    unguarded = dataclasses.replace(stiff, depth_outlier=1e9, depth_levels=SMALL.levels)
+    err = {"images": [], "stiff": [], "unguarded": []}
+    for k in range(1, 5):
+        cur = np.array(strong[k + 1].depth)
+        cur[30:90, 40:120] = 0.3
+        for name, cfg in (("images", SMALL), ("stiff", stiff), ("unguarded", unguarded)):
+            kf, frame, init, gt = case(strong, k, cfg)
+            r = track(kf, frame, init, cfg, depth=cur)
+            err[name].append(float(np.linalg.norm(np.asarray(r.trajectory.middle().t - gt.middle().t))))
+            if name == "stiff":
+                assert [lv["depth_term"] for lv in r.diagnostics["levels"]] == [False, True, True]  # coarse to fine
+    assert np.mean(err["stiff"]) < np.mean(err["images"]), err
+    assert np.mean(err["stiff"]) < 0.5 * np.mean(err["unguarded"]), err
+
+
 def test_depth_term_off_changes_nothing_and_checks_shape(strong):
     kf, frame, init, _ = case(strong, 2, SMALL)
     a = track(kf, frame, init, SMALL)

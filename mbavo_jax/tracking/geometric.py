@@ -85,11 +85,13 @@ def depth_residuals(
     pvalid: Bool[Array, "N"],
     edge_rel: float,
     sigma: tuple = (0.0012, 0.0019),
+    outlier: float = float("inf"),
 ) -> tuple[Float[Array, "N"], Bool[Array, "N"]]:
     """Depth residuals (D_cur(π(X')) − X'_z) / σ(X'_z) of the keyframe points seen from
     ``mid`` = T_ref_mid, and their validity (invalid residuals are 0). ``cur_depth`` uses 0 for
-    missing depth; ``sigma`` = (a, b) of σ(z) = a + b·(z − 0.4)². Differentiable in ``mid`` (plain
-    autodiff: N residuals of one pose)."""
+    missing depth; ``sigma`` = (a, b) of σ(z) = a + b·(z − 0.4)²; residuals of ``outlier`` σ or more
+    (occlusions: the point is hidden behind a nearer surface) are invalid. Differentiable in
+    ``mid`` (plain autodiff: N residuals of one pose)."""
     T_cur_ref = mid.inverse()
 
     def one(x, d):
@@ -100,7 +102,9 @@ def depth_residuals(
         dm, ok = sample_depth(cur_depth, camera.project(safe), edge_rel)
         ok = ok & in_front
         sd = jax.lax.stop_gradient(sigma[0] + sigma[1] * (z - 0.4) ** 2)
-        return jnp.where(ok, (dm - z) / sd, 0.0), ok
+        r = (dm - z) / sd
+        ok = ok & (jnp.abs(r) < outlier)
+        return jnp.where(ok, r, 0.0), ok
 
     r, ok = jax.vmap(one)(pixels, depths)
     ok = ok & pvalid

@@ -78,13 +78,21 @@ class TrackerConfig:
     keyframe points seen from the mid-exposure pose should lie on it). The depth error, in units of
     the sensor noise σ(z) = depth_sigma[0] + depth_sigma[1]·(z − 0.4)² m, counts as
     ``depth_weight`` intensity units per σ (0.01 ≈ the photometric noise makes both terms
-    maximum-likelihood under Gaussian noise; with Kinect-class depth 0.03 measured better on strong
-    and extreme blur, docs/benchmarks.md); 0 = off, images only as in MBA-VO. Used when ``track``
+    maximum-likelihood under Gaussian noise; 0.03 measured best with exact and Kinect-class depth,
+    docs/benchmarks.md); 0 = off, images only as in MBA-VO. Used when ``track``
     is given the frame's depth. depth_sigma: (a, b) of the noise model (Kinect v1: 1.2 mm,
     1.9 mm/m²; ``mbavo synth`` writes its own to camera.yaml and ``mbavo track`` reads it);
-    depth_huber: Huber threshold in σ; depth_stride: grid spacing of the term's keyframe points at
-    full resolution (halved per level, at least 2); depth_edge: depth samples whose neighbours
-    differ by more than this fraction are on a depth edge and dropped.
+    depth_huber: Huber threshold in σ; depth_outlier: residuals beyond this many σ (a keyframe point
+    hidden in the current frame, or seen past an edge) are dropped, not Huber-weighted: with exact
+    depth a few dozen occluded points at hundreds of σ dominated the cost and stalled LM;
+    depth_levels: the term is used on this many finest pyramid levels only; coarser levels align
+    images alone (their 2x2-averaged depth makes an ill-conditioned ICP: on the mild benchmark
+    sequence the depth-only optimum lay 25 mm from the truth at 160x120 and 46 mm at 80x60; with
+    depth_weight 1 on all four levels a frame landed 27 mm off, with 2 levels 0.03 mm). 3 of 4
+    measured best at depth_weight 0.03; stiffer weights (≥ 0.1) want 2;
+    depth_stride: grid spacing of the term's keyframe points at full resolution (halved per level,
+    at least 2); depth_edge: depth samples whose neighbours differ by more than this fraction are
+    on a depth edge and dropped.
     """
 
     levels: int = 4
@@ -116,6 +124,8 @@ class TrackerConfig:
     depth_weight: float = 0.0
     depth_sigma: tuple[float, float] = (0.0012, 0.0019)
     depth_huber: float = 3.0
+    depth_outlier: float = 20.0
+    depth_levels: int = 3
     depth_stride: int = 8
     depth_edge: float = 0.02
 
@@ -132,6 +142,8 @@ class TrackerConfig:
             raise ValueError(f"n must be >= 1, got {self.n}")
         if not (self.depth_weight >= 0 and self.depth_huber > 0 and self.depth_stride >= 1 and self.depth_edge > 0):
             raise ValueError("depth_weight must be >= 0, depth_huber and depth_edge > 0, depth_stride >= 1")
+        if not (self.depth_outlier > self.depth_huber and self.depth_levels >= 1):
+            raise ValueError(f"depth_outlier ({self.depth_outlier}) must exceed depth_huber ({self.depth_huber}) and depth_levels must be >= 1, got {self.depth_levels}")
         if len(self.depth_sigma) != 2 or not (self.depth_sigma[0] > 0 and self.depth_sigma[1] >= 0):
             raise ValueError(f"depth_sigma must be (a > 0, b >= 0), got {self.depth_sigma}")
         for name in ("points", "cell", "max_steps"):
@@ -267,7 +279,7 @@ def _solve_level(
     *, n, jacobian, max_steps, rigid, affine, use_outliers,
 ):
     """One level's LM solve. ``depth_term``: None, or (current depth, depth-point pixels, depths,
-    validity, weight, huber, edge, sigma) for the optional geometric residuals."""
+    validity, weight, huber, outlier, edge, sigma) for the optional geometric residuals."""
     rays, d, observed, mask = _level_setup(cam, cur_image, pixels, depths, pvalid, anchor)
     problem = LevelProblem(ref_image, cam, anchor, rays, d, observed, mask, n, jacobian)
     residual = make_residual_fn()
@@ -302,9 +314,9 @@ def _solve_level(
         return jnp.concatenate([quat.log(rel.q), rel.t])
 
     def geometric(z, prob):
-        cur_depth, dpix, ddep, dval, weight, dhuber, edge, sigma = depth_term
+        cur_depth, dpix, ddep, dval, weight, dhuber, outlier, edge, sigma = depth_term
         mid = prob.anchor.plus(expand(z)[:12]).middle()
-        r, _ = depth_residuals(mid, cam, cur_depth, dpix, ddep, dval, edge, sigma)
+        r, _ = depth_residuals(mid, cam, cur_depth, dpix, ddep, dval, edge, sigma, outlier)
         return weight * robust(r, dhuber)
 
     def fn(z, prob):
@@ -359,9 +371,12 @@ def _coarse_to_fine(keyframe: Keyframe, pyr, init: ExposureTrajectory, config: T
         pts = keyframe.points[level]
         n = _n_for_level(config, blur0, level)
         depth_term = None
-        if depth_pyr is not None:
+        if depth_pyr is not None and level < config.depth_levels:
             dp = keyframe.depth_points[level]
-            depth_term = (depth_pyr[level], *dp.on_device, config.depth_weight, config.depth_huber, config.depth_edge, tuple(config.depth_sigma))
+            depth_term = (
+                depth_pyr[level], *dp.on_device, config.depth_weight, config.depth_huber, config.depth_outlier,
+                config.depth_edge, tuple(config.depth_sigma),
+            )
         out = _solve_level(
             keyframe.images[level], keyframe.cameras[level], pyr[level],
             *pts.on_device,
@@ -372,7 +387,10 @@ def _coarse_to_fine(keyframe: Keyframe, pyr, init: ExposureTrajectory, config: T
         )
         new_traj, ab, rms, rms0, nvalid, converged, steps, nrms = out
         per_level.append(
-            dict(level=level, n=n, rms=float(rms), rms_init=float(rms0), nrms=float(nrms), valid=int(nvalid), converged=bool(converged), steps=int(steps))
+            dict(
+                level=level, n=n, rms=float(rms), rms_init=float(rms0), nrms=float(nrms), valid=int(nvalid),
+                converged=bool(converged), steps=int(steps), depth_term=depth_term is not None,
+            )
         )
         if not np.isfinite(float(rms)):
             return new_traj, ab, per_level

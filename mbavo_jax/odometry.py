@@ -274,6 +274,7 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
     mids: list[tuple[float, Pose]] = []
     kf_state = None  # (Keyframe, T_world_kf, stamp)
     keyframe_count = 0
+    resumed_pending = None  # index of a resumed keyframe that still waits to be deblurred
     if resume and (out / "trajectory.txt").is_file() and (out / "keyframes.txt").is_file():
         t_done, p_done = read_tum_trajectory(out / "trajectory.txt")
         t_kf, p_kf = read_tum_trajectory(out / "keyframes.txt")
@@ -287,6 +288,14 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
         kf_img = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED).astype(np.float32) / 65535.0
         kf_state = (Keyframe.create(kf_img, seq[k].depth, seq.camera, tracker), Pose.from_vector(jnp.asarray(p_kf[-1], jnp.float32)), float(t_kf[-1]))
         keyframe_count = len(t_kf)
+        # a keyframe made without an exposure path (the first frame, a reset after drops: its stamp
+        # is not a tracked frame's) that no frame has tracked against yet is still the raw image:
+        # it waits to be deblurred, as in an uninterrupted run
+        pathless = abs(t_kf[-1] - t_done[0]) < 1e-6 if len(t_kf) == 1 else not np.any(np.abs(t_done - t_kf[-1]) < 1e-6)
+        if pathless and not np.any(t_done > t_kf[-1] + 1e-6):
+            resumed_pending = k
+            if t_kf[-1] > t_done[-1]:  # a reset: the velocity was forgotten
+                mids = mids[-1:]
     append = resume and start_index > 0
     if not append:  # a fresh run: keyframe images and triptychs of an earlier run in ``out`` would mix in
         for stale in [*(out / "keyframes").glob("*.png"), *out.glob("triptych_*.png")]:
@@ -304,7 +313,16 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
     pending = None  # (image, depth, exposure) of the current keyframe while it waits to be deblurred
     deblur_pending = odo.deblur_first_keyframe and tracker.blur_aware
 
-    def keyframe_without_path(frame, T_w_kf: Pose, exposure: float):
+    def exposure_of(frame) -> float:
+        return frame.exposure if frame.exposure is not None else odo.exposure_s
+
+    def pending_of(frame):
+        """What ``_deblur_pending_keyframe`` needs of a keyframe made from ``frame`` without an
+        exposure path, or None when it will not be deblurred."""
+        wait = deblur_pending and exposure_of(frame) > 0 and frame.depth is not None
+        return (frame.image, frame.depth, exposure_of(frame)) if wait else None
+
+    def keyframe_without_path(frame, T_w_kf: Pose):
         """(kf_state, pending) of a keyframe at ``T_w_kf`` from a frame whose exposure path is not
         known (the first frame, a reset after drops): used as it is, and deblurred once the next
         frame tracked against it gives the velocity (``_deblur_pending_keyframe``)."""
@@ -313,18 +331,20 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
         _save_keyframe_image(out, frame.timestamp, frame.image)
         kf_w.write(frame.timestamp, _pose_vec(T_w_kf))
         state = (Keyframe.create(frame.image, frame.depth, seq.camera, tracker), T_w_kf, frame.timestamp)
-        wait = deblur_pending and exposure > 0 and frame.depth is not None
-        return state, ((frame.image, frame.depth, exposure) if wait else None)
+        return state, pending_of(frame)
+
+    if resumed_pending is not None:
+        pending = pending_of(seq[resumed_pending])
 
     dt_default = float(np.median(np.diff(seq.timestamps))) if len(seq) > 1 else 1 / 30
     try:
         for idx in range(start_index, n_total):
             frame = seq[idx]
-            exposure = frame.exposure if frame.exposure is not None else odo.exposure_s
+            exposure = exposure_of(frame)
             t0 = time.perf_counter()
             if kf_state is None:  # first frame: the world frame, taken as sharp until its blur is known
                 T_w = Pose.identity()
-                kf_state, pending = keyframe_without_path(frame, T_w, exposure)
+                kf_state, pending = keyframe_without_path(frame, T_w)
                 traj_w.write(frame.timestamp, _pose_vec(T_w))
                 exp_w.write(frame.timestamp, _pose_vec(T_w), _pose_vec(T_w))
                 mids.append((frame.timestamp, T_w))
@@ -391,7 +411,7 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
                 if mids:
                     mids = [mids[-1]]
                 if consecutive_drops >= odo.reset_after_drops and frame.depth is not None and np.isfinite(frame.depth).any() and np.std(frame.image) > 1e-3:
-                    kf_state, pending = keyframe_without_path(frame, mids[-1][1], exposure)
+                    kf_state, pending = keyframe_without_path(frame, mids[-1][1])
                     consecutive_drops = 0
                     is_kf = 1
             diag = result.diagnostics if result is not None else {}

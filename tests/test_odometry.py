@@ -278,6 +278,14 @@ def test_first_keyframe_is_deblurred_once_the_velocity_is_known(seq_dir, tmp_pat
         scores[on] = psnr_to_sharp(seq, 0, kf0)
     blurry = psnr_to_sharp(seq, 0, seq[0].image)
     assert abs(scores[False] - blurry) < 0.1 and scores[True] > blurry + 1.0, (scores, blurry)
+    # interrupted after the first frame (its keyframe still the raw input), then --resume: the
+    # resumed run deblurs it as the uninterrupted one does
+    tc, oc = load_config(None, SMALL_SET)
+    out = tmp_path / "resumed"
+    run_odometry(seq, out, tc, oc, max_frames=1, progress=None)
+    assert run_odometry(seq, out, tc, oc, max_frames=3, resume=True, progress=None)["tracked"] == 2
+    kf0 = read_image_gray(out / "keyframes" / f"{seq[0].timestamp:.6f}.png")
+    assert abs(psnr_to_sharp(seq, 0, kf0) - scores[True]) < 0.05, (psnr_to_sharp(seq, 0, kf0), scores)
 
 
 def test_keyframe_made_after_drops_is_deblurred_like_the_first(seq_dir, tmp_path, monkeypatch):

@@ -78,8 +78,8 @@ class TrackerConfig:
     keyframe points seen from the mid-exposure pose should lie on it). The depth error, in units of
     the sensor noise σ(z) = depth_sigma[0] + depth_sigma[1]·(z − 0.4)² m, counts as
     ``depth_weight`` intensity units per σ (0.01 ≈ the photometric noise makes both terms
-    maximum-likelihood under Gaussian noise; 0.03 measured best with exact and Kinect-class depth,
-    docs/benchmarks.md); 0 = off, images only as in MBA-VO. Used when ``track``
+    maximum-likelihood under Gaussian noise; 0.03 measured better on mild blur with exact depth and
+    on extreme blur with Kinect-class depth, docs/benchmarks.md); 0 = off, images only as in MBA-VO. Used when ``track``
     is given the frame's depth. depth_sigma: (a, b) of the noise model (Kinect v1: 1.2 mm,
     1.9 mm/m²; ``mbavo synth`` writes its own to camera.yaml and ``mbavo track`` reads it);
     depth_huber: Huber threshold in σ; depth_outlier: residuals beyond this many σ (a keyframe point

@@ -279,7 +279,9 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
         t_done, p_done = read_tum_trajectory(out / "trajectory.txt")
         t_kf, p_kf = read_tum_trajectory(out / "keyframes.txt")
         stamps = seq.timestamps
-        start_index = int(np.searchsorted(stamps, t_done[-1] + 1e-6))
+        # frames up to the last keyframe were processed (a keyframe made after drops comes later
+        # than the last tracked frame): continue after both
+        start_index = int(np.searchsorted(stamps, max(t_done[-1], t_kf[-1]) + 1e-6))
         mids = [(float(t), Pose.from_vector(jnp.asarray(p, jnp.float32))) for t, p in zip(t_done[-2:], p_done[-2:])]
         k = int(np.argmin(np.abs(stamps - t_kf[-1])))
         img_path = out / "keyframes" / f"{t_kf[-1]:.6f}.png"
@@ -288,14 +290,14 @@ def run_odometry(seq, out, tracker: TrackerConfig = TrackerConfig(), odo: Odomet
         kf_img = cv2.imread(str(img_path), cv2.IMREAD_UNCHANGED).astype(np.float32) / 65535.0
         kf_state = (Keyframe.create(kf_img, seq[k].depth, seq.camera, tracker), Pose.from_vector(jnp.asarray(p_kf[-1], jnp.float32)), float(t_kf[-1]))
         keyframe_count = len(t_kf)
-        # a keyframe made without an exposure path (the first frame, a reset after drops: its stamp
-        # is not a tracked frame's) that no frame has tracked against yet is still the raw image:
-        # it waits to be deblurred, as in an uninterrupted run
-        pathless = abs(t_kf[-1] - t_done[0]) < 1e-6 if len(t_kf) == 1 else not np.any(np.abs(t_done - t_kf[-1]) < 1e-6)
-        if pathless and not np.any(t_done > t_kf[-1] + 1e-6):
+        # a keyframe made without an exposure path that no frame has tracked against yet is still
+        # the raw image and waits to be deblurred, as in an uninterrupted run: the first frame with
+        # nothing tracked after it, or a reset after drops (later than every tracked frame)
+        reset = t_kf[-1] > t_done[-1] + 1e-6
+        if reset or (len(t_done) == 1 and abs(t_kf[-1] - t_done[0]) < 1e-6):
             resumed_pending = k
-            if t_kf[-1] > t_done[-1]:  # a reset: the velocity was forgotten
-                mids = mids[-1:]
+        if reset:  # the drops before it forgot the velocity
+            mids = mids[-1:]
     append = resume and start_index > 0
     if not append:  # a fresh run: keyframe images and triptychs of an earlier run in ``out`` would mix in
         for stale in [*(out / "keyframes").glob("*.png"), *out.glob("triptych_*.png")]:

@@ -314,3 +314,14 @@ def test_keyframe_made_after_drops_is_deblurred_like_the_first(seq_dir, tmp_path
     assert any(abs(t - stamp) < 1e-6 for t in read_tum_trajectory(tmp_path / "run" / "keyframes.txt")[0])
     kf12 = read_image_gray(tmp_path / "run" / "keyframes" / f"{stamp:.6f}.png")
     assert psnr_to_sharp(seq, 12, kf12) > psnr_to_sharp(seq, 12, seq[12].image) + 0.5
+    # killed right after the reset (frame 12 still the raw input), then --resume: it continues after
+    # frame 12, deblurs it as above and writes the same poses
+    out = tmp_path / "resumed"
+    run_odometry(seq, out, tc, oc, max_frames=13, progress=None)
+    assert run_odometry(seq, out, tc, oc, max_frames=14, resume=True, progress=None)["frames"] == 1
+    resumed = read_image_gray(out / "keyframes" / f"{stamp:.6f}.png")
+    assert abs(psnr_to_sharp(seq, 12, resumed) - psnr_to_sharp(seq, 12, kf12)) < 0.05
+    t_a, p_a = read_tum_trajectory(tmp_path / "run" / "trajectory.txt")
+    t_b, p_b = read_tum_trajectory(out / "trajectory.txt")
+    assert np.allclose(t_a, t_b) and np.allclose(p_a, p_b, atol=1e-4)
+    assert np.allclose(read_tum_trajectory(out / "keyframes.txt")[0], read_tum_trajectory(tmp_path / "run" / "keyframes.txt")[0])

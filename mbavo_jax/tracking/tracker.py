@@ -87,9 +87,10 @@ class TrackerConfig:
     depth a few dozen occluded points at hundreds of σ dominated the cost and stalled LM;
     depth_levels: the term is used on this many finest pyramid levels only; coarser levels align
     images alone (their 2x2-averaged depth makes an ill-conditioned ICP: on the mild benchmark
-    sequence the depth-only optimum lay 25 mm from the truth at 160x120 and 46 mm at 80x60; with
-    depth_weight 1 on all four levels a frame landed 27 mm off, with 2 levels 0.03 mm). 3 of 4
-    measured best at depth_weight 0.03; stiffer weights (≥ 0.1) want 2;
+    sequence the depth-only optimum lay 22 mm from the truth at 160x120 and 122 mm at 80x60,
+    ``scripts/depth_only_fit.py``; with depth_weight 1 on all four levels a frame landed 27 mm off,
+    with 2 levels 0.03 mm, ``scripts/track_frame_pair.py``). 3 of 4 measured best at depth_weight
+    0.03; stiffer weights (0.1 and 1: 5.7 and 8.5 mm off with 3 levels, 0.03 mm with 2) want 2;
     depth_stride: grid spacing of the term's keyframe points at full resolution (halved per level,
     at least 2); depth_edge: depth samples whose neighbours differ by more than this fraction are
     on a depth edge and dropped.

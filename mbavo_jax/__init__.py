@@ -13,7 +13,20 @@ Conventions (used everywhere, never mixed):
 * Pixel centres are at integer coordinates; intensities are float in [0, 1].
 """
 
-from .geometry import ExposureTrajectory, PinholeCamera, Pose
-
 __version__ = "0.1.0"
 __all__ = ["Pose", "PinholeCamera", "ExposureTrajectory", "__version__"]
+
+_GEOMETRY = ("Pose", "PinholeCamera", "ExposureTrajectory")
+
+
+def __getattr__(name: str):
+    """The geometry types, imported on first use (PEP 562): ``import mbavo_jax.cli`` loads no JAX."""
+    if name in _GEOMETRY:
+        from . import geometry
+
+        return getattr(geometry, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted([*globals(), *_GEOMETRY])

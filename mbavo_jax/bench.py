@@ -1,12 +1,11 @@
-"""Tracking benchmark: ours (n = 1, n = 64 autodiff / analytic, adaptive n) vs Open3D and OpenCV RGB-D
-odometry, on the same frame pairs of a generated blurry sequence, in one run.
+"""``mbavo bench``: the tracking benchmark (frame pairs) and the odometry benchmark (whole sequences),
+ours against Open3D and OpenCV RGB-D odometry on the same data.
 
-Each pair: keyframe = the sharp mid-exposure image of frame k with its depth; current = the blurry
-frame k+1. The initial guess is constant velocity from the ground-truth mid-exposure poses of frames
-k-1 and k (what a perfect constant-velocity model would predict). Accuracy: the median over the
-keyframe's points of the reprojection error of the estimated start and end poses ("endpoint") and of
-the mid-exposure pose ("mid"); single-pose methods (n = 1, Open3D, OpenCV) use their pose for both.
-Times: median wall time per frame of the tracking call, excluding the first pair (compilation).
+Tracking: each pair is the sharp mid-exposure image of frame k with its depth (keyframe) and the
+blurry frame k+1, from a constant-velocity guess of the true mid-exposure poses of frames k-1 and k.
+Accuracy: median reprojection error over the keyframe's points of the estimated start and end poses
+("endpoint") and of the mid-exposure pose ("mid"); single-pose methods use their pose for both.
+Times: median wall time of the tracking call, first pair (compilation) excluded.
 """
 
 from __future__ import annotations
@@ -23,14 +22,102 @@ import jax.numpy as jnp
 import numpy as np
 import yaml
 
+from . import tracking
+from .config import PRESETS, BenchConfig, EvalConfig, RunConfig, SynthConfig, TrackerConfig, calibration_of
 from .datasets import open_sequence
+from .errors import DataError, MbavoError
+from .evaluation import evaluate_run
 from .geometry import ExposureTrajectory, Pose
 from .io import read_image_gray
-from .odometry import sequence_calibration
-from .tracking import Keyframe, TrackerConfig, constant_velocity_guess, track
-from .tracking import tracker as tracker_mod
+from .methods import ODOMETRY_METHODS, check_methods, parse_methods
+from .progress import bar
+from .tracking import Keyframe, constant_velocity_guess, track
 
-__all__ = ["run_tracking_benchmark", "format_tracking_table"]
+__all__ = ["run_tracking_benchmark", "format_tracking_table", "run_odometry_benchmark", "format_odometry_table",
+           "main_tracking", "main_odometry", "Open3DPeer", "OpenCVPeer", "ODOMETRY_METHODS"]
+
+# ---------------------------------------------------------------------------------------- peers
+
+
+def import_open3d():
+    """Open3D; where the system lacks libusb-1.0 (some builds link it), the copy that the
+    libusb-package wheel ships is loaded first."""
+    try:
+        import open3d
+    except OSError as exc:
+        if "libusb" not in str(exc):
+            raise
+        import ctypes
+
+        import libusb_package
+
+        ctypes.CDLL(str(libusb_package.get_library_path()), mode=ctypes.RTLD_GLOBAL)
+        import open3d
+    return open3d
+
+
+class Open3DPeer:
+    """Open3D ``compute_rgbd_odometry`` between two RGB-D frames. ``term``: "hybrid" (Open3D's
+    default: photometric + geometric ICP on the current frame's depth) or "color" (photometric only)."""
+
+    def __init__(self, camera, term: str = "hybrid", depth_max: float = BenchConfig().peer_depth_max):
+        o3d = import_open3d()
+        self.o3d = o3d
+        self.intrinsic = o3d.camera.PinholeCameraIntrinsic(camera.width, camera.height, float(camera.fx), float(camera.fy),
+                                                           float(camera.cx), float(camera.cy))
+        self.option = o3d.pipelines.odometry.OdometryOption(depth_max=depth_max)
+        self.jacobian = {"hybrid": o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm,
+                         "color": o3d.pipelines.odometry.RGBDOdometryJacobianFromColorTerm}[term]()
+        self.note = f"Open3D {o3d.__version__} compute_rgbd_odometry ({term} term, depth_max {depth_max:g} m)"
+
+    def prepare(self, image, depth):
+        o3d = self.o3d
+        color = o3d.geometry.Image(np.ascontiguousarray((np.clip(image, 0, 1) * 255).astype(np.uint8)))
+        d = o3d.geometry.Image(np.ascontiguousarray(np.nan_to_num(depth, nan=0.0).astype(np.float32)))
+        return o3d.geometry.RGBDImage.create_from_color_and_depth(color, d, depth_scale=1.0, depth_trunc=50.0, convert_rgb_to_intensity=True)
+
+    def relative_pose(self, prev, cur, guess_cur_prev):
+        """(ok, T_prev_cur) from ``guess_cur_prev`` (4x4); on failure the guess's inverse."""
+        ok, T_cur_prev, _ = self.o3d.pipelines.odometry.compute_rgbd_odometry(prev, cur, self.intrinsic, guess_cur_prev,
+                                                                             self.jacobian, self.option)
+        return bool(ok), np.linalg.inv(T_cur_prev if ok else guess_cur_prev)
+
+
+class OpenCVPeer:
+    """OpenCV ``cv2.Odometry`` (RGB_DEPTH, COMMON) between two RGB-D frames; it takes no guess."""
+
+    def __init__(self, camera, depth_max: float = BenchConfig().peer_depth_max):
+        import cv2
+
+        self.cv2 = cv2
+        settings = cv2.OdometrySettings()
+        settings.setCameraMatrix(np.asarray(camera.K(), np.float32))
+        settings.setMaxDepth(float(depth_max))
+        self.odometry = cv2.Odometry(cv2.OdometryType_RGB_DEPTH, settings, cv2.OdometryAlgoType_COMMON)
+        self.note = f"OpenCV {cv2.__version__} cv2.Odometry RGB_DEPTH (COMMON, max depth {depth_max:g} m)"
+
+    def prepare(self, image, depth):
+        gray = (np.clip(image, 0, 1) * 255).astype(np.uint8)
+        return np.nan_to_num(depth, nan=0.0).astype(np.float32), self.cv2.cvtColor(gray, self.cv2.COLOR_GRAY2BGR)
+
+    def relative_pose(self, prev, cur, guess_cur_prev):
+        """(ok, T_prev_cur); (False, None) on failure."""
+        ok, Rt = self.odometry.compute(prev[0], prev[1], cur[0], cur[1])  # Rt · src = dst: T_cur_prev
+        if not ok or Rt is None or not np.all(np.isfinite(Rt)):
+            return False, None
+        return True, np.linalg.inv(Rt)
+
+
+# ---------------------------------------------------------------------------- tracking benchmark
+
+# our tracker settings in the tracking benchmark, on top of the sequence's calibration
+OURS_TRACKING = {
+    "n1": dict(blur_aware=False),
+    "n64": dict(jacobian="autodiff"),
+    "n64_analytic": dict(jacobian="analytic"),
+    "n64_all_levels": dict(jacobian="analytic", n_per_level="same"),
+    "adaptive": dict(jacobian="analytic", n_mode="adaptive"),
+}
 
 
 def _P(v):
@@ -66,145 +153,96 @@ def _pairs(seq, frames: int):
         yield k, read_image_gray(sharp_path), seq[k].depth, seq[k + 1], init, gt
 
 
-def _single_pose_traj(T_ref_cur: Pose) -> ExposureTrajectory:
-    return ExposureTrajectory(T_ref_cur, T_ref_cur)
-
-
-def _open3d_method(camera, gamma):
+def _tracking_peers(camera, peers: bool, depth_max: float) -> tuple[dict, dict]:
+    """(adapters, notes): the peers that load, and a line on each."""
+    adapters, notes = {}, {}
+    if not peers:
+        return adapters, notes
     try:
-        import open3d as o3d
+        adapters["open3d"] = Open3DPeer(camera, depth_max=depth_max)
+        notes["open3d"] = adapters["open3d"].note
     except Exception as exc:  # pragma: no cover - depends on the machine
-        return None, f"open3d unavailable ({type(exc).__name__}: {exc})"
-    intr = o3d.camera.PinholeCameraIntrinsic(camera.width, camera.height, float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
-    option = o3d.pipelines.odometry.OdometryOption()
-    jac = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
-
-    def rgbd(img, depth):
-        color = o3d.geometry.Image(np.ascontiguousarray((np.clip(img, 0, 1) * 255).astype(np.uint8)))
-        d = o3d.geometry.Image(np.ascontiguousarray(np.nan_to_num(depth, nan=0.0).astype(np.float32)))
-        return o3d.geometry.RGBDImage.create_from_color_and_depth(color, d, depth_scale=1.0, depth_trunc=50.0, convert_rgb_to_intensity=True)
-
-    def run(sharp, depth, frame, init: ExposureTrajectory):
-        src = rgbd(sharp, depth)
-        dst = rgbd(frame.image, frame.depth)
-        guess = np.asarray(init.middle().inverse().as_matrix(), np.float64)  # T_cur_ref
-        ok, T_cur_ref, _ = o3d.pipelines.odometry.compute_rgbd_odometry(src, dst, intr, guess, jac, option)
-        T = T_cur_ref if ok else guess
-        return _single_pose_traj(Pose.from_matrix(jnp.asarray(np.linalg.inv(T), jnp.float32))), bool(ok)
-
-    return run, f"Open3D {o3d.__version__} compute_rgbd_odometry (hybrid term)"
+        notes["open3d"] = f"open3d unavailable ({type(exc).__name__}: {exc})"
+    adapters["opencv"] = OpenCVPeer(camera, depth_max)
+    notes["opencv"] = adapters["opencv"].note
+    return adapters, notes
 
 
-def _opencv_method(camera):
-    import cv2
-
-    settings = cv2.OdometrySettings()
-    settings.setCameraMatrix(np.asarray(camera.K(), np.float32))
-    odo = cv2.Odometry(cv2.OdometryType_RGB_DEPTH, settings, cv2.OdometryAlgoType_COMMON)
-
-    def run(sharp, depth, frame, init: ExposureTrajectory):
-        to8 = lambda im: cv2.cvtColor((np.clip(im, 0, 1) * 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
-        d0 = np.nan_to_num(depth, nan=0.0).astype(np.float32)
-        d1 = np.nan_to_num(frame.depth, nan=0.0).astype(np.float32)
-        ok, Rt = odo.compute(d0, to8(sharp), d1, to8(frame.image))  # Rt · src = dst: T_cur_ref
-        if not ok or Rt is None or not np.all(np.isfinite(Rt)):
-            return init, False
-        return _single_pose_traj(Pose.from_matrix(jnp.asarray(np.linalg.inv(Rt), jnp.float32))), True
-
-    return run, f"OpenCV {cv2.__version__} cv2.Odometry RGB_DEPTH (COMMON)"
+def _record(row: dict, ms: float, kf: Keyframe, traj: ExposureTrajectory, gt: ExposureTrajectory, ok: bool) -> None:
+    e, m = _errors(kf, traj, gt)
+    row["ms"].append(ms)
+    row["endpoint"].append(e)
+    row["mid"].append(m)
+    row["ok"] += int(ok)
 
 
-def run_tracking_benchmark(data, frames: int = 20, peers: bool = True, progress=sys.stderr) -> dict:
-    """Run every method on the same ``frames`` pairs of the sequence in ``data``; returns the results."""
-    seq = open_sequence(data)
-    if seq.exposure_paths is None or seq.groundtruth is None:
-        raise ValueError(f"{data}: the benchmark needs a generated sequence with exposure.txt and groundtruth.txt")
-    base = TrackerConfig(**sequence_calibration(seq))
-    gamma = base.response_gamma
-    ours = {
-        "n1": dataclasses.replace(base, blur_aware=False),
-        "n64": dataclasses.replace(base, jacobian="autodiff"),
-        "n64_analytic": dataclasses.replace(base, jacobian="analytic"),
-        "n64_all_levels": dataclasses.replace(base, jacobian="analytic", n_per_level="same"),
-        "adaptive": dataclasses.replace(base, jacobian="analytic", n_mode="adaptive"),
-    }
-    methods: dict[str, tuple] = {}
-    peer_notes = {}
-    if peers:
-        o3d_run, note = _open3d_method(seq.camera, gamma)
-        peer_notes["open3d"] = note
-        if o3d_run is not None:
-            methods["open3d"] = (o3d_run, None)
-        cv_run, note = _opencv_method(seq.camera)
-        peer_notes["opencv"] = note
-        methods["opencv"] = (cv_run, None)
-    rows: dict[str, dict] = {name: {"ms": [], "endpoint": [], "mid": [], "ok": 0} for name in [*ours, *methods]}
-    recompiles = {name: 0 for name in ours}
-    pairs = list(_pairs(seq, frames))
-    t_start = time.perf_counter()
-    for idx, (k, sharp, depth, frame, init, gt) in enumerate(pairs):
-        for name, cfg in ours.items():
-            kf = Keyframe.create(sharp, depth, seq.camera, cfg)
-            before = tracker_mod._solve_level._cache_size()
-            t0 = time.perf_counter()
-            traj, status, _ = track(kf, frame.image, init, cfg)
-            rows[name]["ms"].append(1000 * (time.perf_counter() - t0))
-            if idx > 0:  # programs compiled after the first pair, per method
-                recompiles[name] += tracker_mod._solve_level._cache_size() - before
-            e, m = _errors(kf, traj, gt)
-            rows[name]["endpoint"].append(e)
-            rows[name]["mid"].append(m)
-            rows[name]["ok"] += int(status.ok)
-        kf_eval = Keyframe.create(sharp, depth, seq.camera, base)
-        for name, (run, _) in methods.items():
-            t0 = time.perf_counter()
-            traj, ok = run(sharp, depth, frame, init)
-            rows[name]["ms"].append(1000 * (time.perf_counter() - t0))
-            e, m = _errors(kf_eval, traj, gt)
-            rows[name]["endpoint"].append(e)
-            rows[name]["mid"].append(m)
-            rows[name]["ok"] += int(ok)
-        if progress is not None:
-            el = time.perf_counter() - t_start
-            progress.write(f"\rbench {idx + 1}/{len(pairs)} pairs  {el:.0f} s")
-            progress.flush()
-    if progress is not None:
-        progress.write("\n")
-    summary = {"frames": len(pairs), "sequence": str(data), "resolution": f"{seq.camera.width}x{seq.camera.height}", "peers": peer_notes}
+def _track_pair(rows: dict, recompiles: dict, ours: dict, peers: dict, camera, base: TrackerConfig, first: bool, pair) -> None:
+    """Every method on one pair; our programs compiled after the first pair counted in ``recompiles``."""
+    _, sharp, depth, frame, init, gt = pair
+    for name, cfg in ours.items():
+        kf = Keyframe.create(sharp, depth, camera, cfg)
+        before = tracking.compiled_programs()
+        t0 = time.perf_counter()
+        traj, status, _ = track(kf, frame.image, init, cfg)
+        ms = 1000 * (time.perf_counter() - t0)
+        if not first:
+            recompiles[name] += tracking.compiled_programs() - before
+        _record(rows[name], ms, kf, traj, gt, status.ok)
+    kf_eval = Keyframe.create(sharp, depth, camera, base)
+    guess = np.asarray(init.middle().inverse().as_matrix(), np.float64)  # T_cur_ref
+    for name, peer in peers.items():
+        t0 = time.perf_counter()
+        ok, T_ref_cur = peer.relative_pose(peer.prepare(sharp, depth), peer.prepare(frame.image, frame.depth), guess)
+        ms = 1000 * (time.perf_counter() - t0)
+        if T_ref_cur is None:
+            traj = init
+        else:
+            pose = Pose.from_matrix(jnp.asarray(T_ref_cur, jnp.float32))
+            traj = ExposureTrajectory(pose, pose)
+        _record(rows[name], ms, kf_eval, traj, gt, ok)
+
+
+def _tracking_summary(rows: dict, recompiles: dict) -> dict:
+    """Per-method medians and the flat numbers (``n64_ms``, ...) of the tracking benchmark."""
     table = {}
     for name, r in rows.items():
         ms = np.asarray(r["ms"][1:] if len(r["ms"]) > 1 else r["ms"])
-        table[name] = {
-            "median_ms": float(np.median(ms)),
-            "endpoint_px": float(np.median(r["endpoint"])),
-            "mid_px": float(np.median(r["mid"])),
-            "endpoint_px_p90": float(np.percentile(r["endpoint"], 90)),
-            "ok": r["ok"],
-        }
-    summary["methods"] = table
-    for name in ours:
-        table[name]["recompiles_after_first_frame"] = int(recompiles[name])
-    # fixed-n methods compile once per level on the first frame; adaptive n compiles one program per
-    # (level, n) the first time it meets that n, so it may compile later too (reported separately)
-    fixed_recompiles = sum(recompiles[k] for k in ours if k != "adaptive")
-    n1 = table["n1"]["median_ms"]
+        table[name] = {"median_ms": float(np.median(ms)), "endpoint_px": float(np.median(r["endpoint"])),
+                       "mid_px": float(np.median(r["mid"])), "endpoint_px_p90": float(np.percentile(r["endpoint"], 90)), "ok": r["ok"]}
+    for name, n in recompiles.items():
+        table[name]["recompiles_after_first_frame"] = int(n)
     for name in table:
-        table[name]["ratio_to_n1"] = table[name]["median_ms"] / n1
-    flat = {
-        "n1_ms": table["n1"]["median_ms"],
-        "n64_ms": table["n64"]["median_ms"],
-        "n64_analytic_ms": table["n64_analytic"]["median_ms"],
-        "adaptive_ms": table["adaptive"]["median_ms"],
+        table[name]["ratio_to_n1"] = table[name]["median_ms"] / table["n1"]["median_ms"]
+    # fixed n compiles once per level on the first pair; adaptive n once per new (level, n), so later too
+    return {
+        "methods": table,
+        **{f"{m}_ms": table[m]["median_ms"] for m in ("n1", "n64", "n64_analytic", "adaptive")},
         "open3d_ms": table.get("open3d", {}).get("median_ms"),
         "opencv_ms": table.get("opencv", {}).get("median_ms"),
-        "n64_endpoint_px": table["n64"]["endpoint_px"],
-        "n64_analytic_endpoint_px": table["n64_analytic"]["endpoint_px"],
-        "n1_endpoint_px": table["n1"]["endpoint_px"],
-        "adaptive_endpoint_px": table["adaptive"]["endpoint_px"],
-        "recompiles_after_first_frame": int(fixed_recompiles),
+        **{f"{m}_endpoint_px": table[m]["endpoint_px"] for m in ("n64", "n64_analytic", "n1", "adaptive")},
+        "recompiles_after_first_frame": int(sum(n for m, n in recompiles.items() if m != "adaptive")),
         "adaptive_recompiles_after_first_frame": int(recompiles["adaptive"]),
     }
-    summary.update(flat)
+
+
+def run_tracking_benchmark(data, frames: int = 20, peers: bool = True, progress: bool = True,
+                           peer_depth_max: float = BenchConfig().peer_depth_max) -> dict:
+    """Every method on the same ``frames`` pairs of the generated sequence in ``data``; the results."""
+    seq = open_sequence(data)
+    if seq.exposure_paths is None or seq.groundtruth is None:
+        raise DataError(data, "the tracking benchmark needs a generated sequence with exposure.txt and groundtruth.txt")
+    base = TrackerConfig(**calibration_of(seq.meta))
+    ours = {name: dataclasses.replace(base, **changes) for name, changes in OURS_TRACKING.items()}
+    adapters, notes = _tracking_peers(seq.camera, peers, peer_depth_max)
+    rows = {name: {"ms": [], "endpoint": [], "mid": [], "ok": 0} for name in [*ours, *adapters]}
+    recompiles = dict.fromkeys(ours, 0)
+    pairs = list(_pairs(seq, frames))
+    with bar(len(pairs), "bench", progress, unit="pair") as pbar:
+        for idx, pair in enumerate(pairs):
+            _track_pair(rows, recompiles, ours, adapters, seq.camera, base, idx == 0, pair)
+            pbar.update()
+    summary = {"frames": len(pairs), "sequence": str(data), "resolution": f"{seq.camera.width}x{seq.camera.height}", "peers": notes}
+    summary.update(_tracking_summary(rows, recompiles))
     return summary
 
 
@@ -226,99 +264,59 @@ def format_tracking_table(s: dict) -> str:
     return "\n".join(lines)
 
 
-def _bench_data(preset: str, args, depth_model: str = "exact") -> pathlib.Path:
+def _bench_data(preset: str, cfg: BenchConfig, frames: int, quiet: bool = False, depth_model: str = "exact") -> pathlib.Path:
     """The generated sequence of a preset (``runs/bench_<preset>_<w>x<h>_seed<s>[_sensor]``), made
-    again when missing, too short or older than the depth noise record in camera.yaml."""
-    from .synthetic import PRESETS, SynthConfig, generate_sequence
+    again when missing, shorter than ``frames`` or older than the depth noise record in camera.yaml."""
+    from .synthetic import generate_sequence
 
+    if preset not in PRESETS:
+        raise MbavoError(f"unknown blur preset '{preset}' (choose from {', '.join(PRESETS)})")
     suffix = "" if depth_model == "exact" else f"_{depth_model}"
-    data = pathlib.Path("runs") / f"bench_{preset}_{args.width}x{args.height}_seed{args.seed}{suffix}"
-    if (not (data / "exposure.txt").is_file() or len(open_sequence(data)) < args.frames + 2
+    data = pathlib.Path("runs") / f"bench_{preset}_{cfg.width}x{cfg.height}_seed{cfg.seed}{suffix}"
+    if (not (data / "exposure.txt").is_file() or len(open_sequence(data)) < frames
             or "depth_sigma" not in open_sequence(data).meta):
-        cfg = SynthConfig(**{**PRESETS[preset], "frames": args.frames + 2, "width": args.width, "height": args.height, "seed": args.seed,
-                             "depth_model": depth_model})
-        generate_sequence(cfg, data, progress=None if args.quiet else sys.stderr)
+        synth = SynthConfig(**{**PRESETS[preset], "frames": frames, "width": cfg.width, "height": cfg.height, "seed": cfg.seed,
+                               "depth_model": depth_model})
+        generate_sequence(synth, data, progress=not quiet)
     return data
 
 
-def main_tracking(args) -> int:
-    """``mbavo bench tracking``: one run per preset (default strong, then none), or ``--data DIR``."""
-    progress = None if args.quiet else sys.stderr
-    if args.data:
-        runs = {pathlib.Path(args.data).name: pathlib.Path(args.data)}
+def main_tracking(cfg: BenchConfig, data=None, fmt: str = "table", quiet: bool = False) -> int:
+    """``mbavo bench tracking``: one run per preset of ``cfg.preset`` (default strong, then none), or on ``data``."""
+    if data:
+        runs = {pathlib.Path(data).name: pathlib.Path(data)}
     else:
-        runs = {p: _bench_data(p, args) for p in args.preset.split(",")}
-    results = {name: run_tracking_benchmark(data, args.frames, peers=not args.no_peers, progress=progress) for name, data in runs.items()}
-    if args.format == "json":
+        runs = {p: _bench_data(p, cfg, cfg.frames + 2, quiet) for p in cfg.preset.split(",")}
+    results = {name: run_tracking_benchmark(path, cfg.frames, peers=not cfg.no_peers, progress=not quiet,
+                                                 peer_depth_max=cfg.peer_depth_max) for name, path in runs.items()}
+    if fmt == "json":
         print(json.dumps(results if len(results) > 1 else next(iter(results.values())), indent=2))
     else:
         print("\n\n".join(f"[{name}]\n{format_tracking_table(r)}" for name, r in results.items()))
     return 0
 
 
-# ------------------------------------------------------------------------------ odometry benchmark
+# ---------------------------------------------------------------------------- odometry benchmark
 
 
-def _open3d_step(seq, term: str):
-    """Open3D ``compute_rgbd_odometry`` between consecutive frames. ``term="hybrid"`` (Open3D's
-    default: photometric + geometric ICP on the current frame's depth) or ``"color"`` (photometric
-    only: the like-for-like peer of a direct photometric tracker)."""
-    import open3d as o3d
-
-    cam = seq.camera
-    intr = o3d.camera.PinholeCameraIntrinsic(cam.width, cam.height, float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy))
-    option = o3d.pipelines.odometry.OdometryOption()
-    jac = {"hybrid": o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm,
-           "color": o3d.pipelines.odometry.RGBDOdometryJacobianFromColorTerm}[term]()
-
-    def prepare(f):
-        color = o3d.geometry.Image(np.ascontiguousarray((np.clip(f.image, 0, 1) * 255).astype(np.uint8)))
-        d = o3d.geometry.Image(np.ascontiguousarray(np.nan_to_num(f.depth, nan=0.0).astype(np.float32)))
-        return o3d.geometry.RGBDImage.create_from_color_and_depth(color, d, depth_scale=1.0, depth_trunc=50.0, convert_rgb_to_intensity=True)
-
-    def step(prev, cur, guess_prev_cur):
-        ok, T_cur_prev, _ = o3d.pipelines.odometry.compute_rgbd_odometry(prev, cur, intr, np.linalg.inv(guess_prev_cur), jac, option)
-        return ok, (np.linalg.inv(T_cur_prev) if ok else None)
-
-    return prepare, step
-
-
-def _opencv_step(seq):
-    """OpenCV ``cv2.Odometry`` (RGB_DEPTH, COMMON) between consecutive frames (no initial guess)."""
-    import cv2
-
-    settings = cv2.OdometrySettings()
-    settings.setCameraMatrix(np.asarray(seq.camera.K(), np.float32))
-    odo = cv2.Odometry(cv2.OdometryType_RGB_DEPTH, settings, cv2.OdometryAlgoType_COMMON)
-
-    def prepare(f):
-        return (np.nan_to_num(f.depth, nan=0.0).astype(np.float32), cv2.cvtColor((np.clip(f.image, 0, 1) * 255).astype(np.uint8), cv2.COLOR_GRAY2BGR))
-
-    def step(prev, cur, guess_prev_cur):
-        ok, Rt = odo.compute(prev[0], prev[1], cur[0], cur[1])  # Rt · src = dst: T_cur_prev
-        if not ok or Rt is None or not np.all(np.isfinite(Rt)):
-            return False, None
-        return True, np.linalg.inv(Rt)
-
-    return prepare, step
-
-
-def _peer_odometry(seq, out: pathlib.Path, prepare, step) -> dict:
-    """Frame-to-frame odometry of a peer method chained into a trajectory; failed frames are dropped
-    (no pose) and the chain continues from the last good frame with constant velocity."""
+def _peer_odometry(seq, out: pathlib.Path, peer) -> dict:
+    """Frame-to-frame odometry of a peer chained into ``out/trajectory.txt``; a failed frame is
+    dropped (no pose) and the chain goes on from the last good frame with constant velocity."""
     from .io import TrajectoryWriter
 
     out.mkdir(parents=True, exist_ok=True)
     writer = TrajectoryWriter(out / "trajectory.txt")
     T_w = np.eye(4)
-    prev = prepare(seq[0])
+    prev = peer.prepare(seq[0].image, seq[0].depth)
     writer.write(seq.timestamps[0], np.asarray(Pose.from_matrix(jnp.asarray(T_w)).to_vector()))
     vel = np.eye(4)  # T_prev_cur of the last step
     drops, ms = 0, []
     for i in range(1, len(seq)):
-        cur = prepare(seq[i])
+        frame = seq[i]
+        cur = peer.prepare(frame.image, frame.depth)
+        guess = np.linalg.inv(vel)
         t0 = time.perf_counter()
-        ok, T_prev_cur = step(prev, cur, vel)
+        ok, T_prev_cur = peer.relative_pose(prev, cur, guess)
         ms.append(1000 * (time.perf_counter() - t0))
         if ok:
             vel = T_prev_cur
@@ -332,8 +330,8 @@ def _peer_odometry(seq, out: pathlib.Path, prepare, step) -> dict:
 
 
 def _deblur_quality(seq, run: pathlib.Path) -> dict:
-    """PSNR/SSIM of the keyframe images (deblurred where blurred more than ``deblur_min_blur_px``,
-    the first one too) against the generated sharp frames, and of the blurry input against the same."""
+    """Mean PSNR/SSIM of this run's keyframe images (deblurred where blurred) and of the blurry
+    input, both against the generated sharp frames."""
     from .deblur import psnr, ssim
     from .io import read_tum_trajectory
 
@@ -355,83 +353,79 @@ def _deblur_quality(seq, run: pathlib.Path) -> dict:
             "ssim_deblurred": float(a[:, 2].mean()), "ssim_blurry": float(a[:, 3].mean())}
 
 
-def _ate(t_gt, p_gt, run: pathlib.Path) -> float:
-    """SE3-aligned ATE RMSE of ``run/trajectory.txt``; NaN when fewer than 3 poses match (lost run)."""
-    from . import evaluation as ev
-    from .errors import MbavoError
-    from .io import read_tum_trajectory
-
-    t_est, p_est = read_tum_trajectory(run / "trajectory.txt")
-    try:
-        return float(ev.ape(t_gt, p_gt, t_est, p_est, align="se3", max_diff=0.02)["rmse"])
-    except MbavoError:
-        return float("nan")
+def _ate(seq, run: pathlib.Path, config: EvalConfig) -> float:
+    """ATE RMSE of a run; NaN when it cannot be scored (fewer than 3 matched poses: a lost run)."""
+    return evaluate_run(run, seq.groundtruth, config=config).get("ate_rmse_m", float("nan"))
 
 
-ODOMETRY_METHODS = ("ours_n64", "ours_n1", "ours_adaptive", "ours_n64_depth", "ours_n1_depth", "open3d", "open3d_color", "opencv")
+def _our_configs(base: TrackerConfig, depth_weight: float, methods) -> dict:
+    configs = {
+        "ours_n64": base,
+        "ours_n1": dataclasses.replace(base, blur_aware=False),
+        "ours_adaptive": dataclasses.replace(base, n_mode="adaptive"),
+        "ours_n64_depth": dataclasses.replace(base, depth_weight=depth_weight),
+        "ours_n1_depth": dataclasses.replace(base, blur_aware=False, depth_weight=depth_weight),
+    }
+    return {m: c for m, c in configs.items() if m in methods}
 
 
-def _check_methods(methods):
-    from .errors import MbavoError
+def _run_ours(seq, run: pathlib.Path, cfg: TrackerConfig, progress: bool) -> dict:
+    """One of our methods over a sequence: ATE, frame drops, keyframes, whole-loop seconds per frame."""
+    from .odometry import run_odometry
 
-    unknown = sorted(set(methods) - set(ODOMETRY_METHODS))
-    if unknown or not methods:
-        raise MbavoError(f"unknown benchmark method(s) {', '.join(unknown) or '(none left)'}; choose from {', '.join(ODOMETRY_METHODS)}")
+    config = RunConfig(tracker=cfg)
+    t0 = time.perf_counter()
+    summ = run_odometry(seq, run, config, progress=progress)
+    el = time.perf_counter() - t0
+    with open(run / "frames.csv") as fh:
+        track_ms = [float(r["ms"]) for r in csv.DictReader(fh) if r["status"] != "keyframe"]
+    return {"ate_rmse_m": _ate(seq, run, config.evaluation), "frame_drop_rate": summ["frame_drop_rate"], "keyframes": summ["keyframes"],
+            "seconds_per_frame": el / max(summ["frames"], 1), "median_track_ms": float(np.median(track_ms)) if track_ms else 0.0}
 
 
-def run_odometry_benchmark(sequences: dict, out_root, progress=sys.stderr, tracker_overrides: dict | None = None,
-                           depth_weight: float = 0.03, methods=ODOMETRY_METHODS) -> dict:
-    """ATE (SE3) and frame drops for ours n=64, n=1, adaptive n (images only, as MBA-VO), ours n=64
-    and n=1 with the current frame's depth (``depth_weight``, noise model from camera.yaml), Open3D
-    (hybrid and colour terms) and OpenCV RGB-D odometry on each sequence. Our seconds per frame is
-    the whole loop's wall time (compilation, keyframe selection and deblurring included); the
-    peers' is their median odometry call. ``tracker_overrides``: TrackerConfig fields for our runs
-    (e.g. small images). ``methods``: the subset of :data:`ODOMETRY_METHODS` to run."""
-    from .odometry import OdometryConfig, run_odometry
+def _run_peers(seq, out: pathlib.Path, methods, progress: bool, label: str, depth_max: float) -> dict:
+    """The peers among ``methods`` over a sequence: ATE, frame drops, median seconds per call."""
+    cam = seq.camera
+    makers = {"open3d": lambda: Open3DPeer(cam, "hybrid", depth_max), "open3d_color": lambda: Open3DPeer(cam, "color", depth_max),
+              "opencv": lambda: OpenCVPeer(cam, depth_max)}
+    row = {}
+    for method in (m for m in makers if m in methods):
+        try:
+            peer = makers[method]()
+        except ImportError as exc:
+            row[method] = {"error": f"unavailable: {exc}"}
+            continue
+        if progress:
+            print(f"{label}: {method}", file=sys.stderr)
+        p_sum = _peer_odometry(seq, out / method, peer)
+        row[method] = {"ate_rmse_m": _ate(seq, out / method, RunConfig().evaluation), "frame_drop_rate": p_sum["dropped"] / p_sum["frames"],
+                       "seconds_per_frame": p_sum["median_ms"] / 1000}
+    return row
 
-    _check_methods(methods)
 
+def run_odometry_benchmark(sequences: dict, out_root, progress: bool = True, tracker_overrides: dict | None = None,
+                           depth_weight: float = 0.03, methods=ODOMETRY_METHODS,
+                           peer_depth_max: float = BenchConfig().peer_depth_max) -> dict:
+    """ATE (SE3) and frame drops of each of ``methods`` (see ODOMETRY_METHODS) on each sequence.
+    Ours: whole-loop seconds per frame (compilation, keyframes and deblurring included), ``*_depth``
+    with ``depth_weight``; peers: their median odometry call. ``tracker_overrides``: TrackerConfig
+    fields for our runs (e.g. for small images)."""
+    check_methods(methods)
     out_root = pathlib.Path(out_root)
     results = {}
     for name, path in sequences.items():
         seq = open_sequence(path)
-        base = TrackerConfig(**{**(tracker_overrides or {}), **sequence_calibration(seq), "depth_weight": 0.0})
-        configs = {
-            "ours_n64": base,
-            "ours_n1": dataclasses.replace(base, blur_aware=False),
-            "ours_adaptive": dataclasses.replace(base, n_mode="adaptive"),
-            "ours_n64_depth": dataclasses.replace(base, depth_weight=depth_weight),
-            "ours_n1_depth": dataclasses.replace(base, blur_aware=False, depth_weight=depth_weight),
-        }
-        configs = {m: c for m, c in configs.items() if m in methods}
+        base = TrackerConfig(**{**(tracker_overrides or {}), **calibration_of(seq.meta), "depth_weight": 0.0})
         row = {}
-        t_gt, p_gt = seq.groundtruth
-        for method, cfg in configs.items():
-            run = out_root / name / method
-            if progress is not None:
-                progress.write(f"{name}: {method}\n")
-            t0 = time.perf_counter()
-            summ = run_odometry(seq, run, cfg, OdometryConfig(), progress=progress)
-            el = time.perf_counter() - t0
-            with open(run / "frames.csv") as fh:
-                track_ms = [float(r["ms"]) for r in csv.DictReader(fh) if r["status"] != "keyframe"]
-            row[method] = {"ate_rmse_m": _ate(t_gt, p_gt, run), "frame_drop_rate": summ["frame_drop_rate"], "keyframes": summ["keyframes"],
-                           "seconds_per_frame": el / max(summ["frames"], 1), "median_track_ms": float(np.median(track_ms)) if track_ms else 0.0}
+        for method, cfg in _our_configs(base, depth_weight, methods).items():
+            if progress:
+                print(f"{name}: {method}", file=sys.stderr)
+            row[method] = _run_ours(seq, out_root / name / method, cfg, progress)
             if method == "ours_n64":
-                row[method]["deblur"] = _deblur_quality(seq, run)
-        peers = {"open3d": lambda: _open3d_step(seq, "hybrid"), "open3d_color": lambda: _open3d_step(seq, "color"), "opencv": lambda: _opencv_step(seq)}
-        for method, make in ((m, mk) for m, mk in peers.items() if m in methods):
-            try:
-                prepare, step = make()
-            except ImportError as exc:
-                row[method] = {"error": f"unavailable: {exc}"}
-                continue
-            if progress is not None:
-                progress.write(f"{name}: {method}\n")
-            p_sum = _peer_odometry(seq, out_root / name / method, prepare, step)
-            row[method] = {"ate_rmse_m": _ate(t_gt, p_gt, out_root / name / method), "frame_drop_rate": p_sum["dropped"] / p_sum["frames"],
-                           "seconds_per_frame": p_sum["median_ms"] / 1000}
-        blur = yaml.safe_load((pathlib.Path(path) / "synth.yaml").read_text()).get("mean_blur_px") if (pathlib.Path(path) / "synth.yaml").is_file() else None
+                row[method]["deblur"] = _deblur_quality(seq, out_root / name / method)
+        row.update(_run_peers(seq, out_root / name, methods, progress, name, peer_depth_max))
+        synth = pathlib.Path(path) / "synth.yaml"
+        blur = yaml.safe_load(synth.read_text()).get("mean_blur_px") if synth.is_file() else None
         results[name] = {"mean_blur_px": blur, "frames": len(seq), "depth_sigma": list(base.depth_sigma), "depth_weight": depth_weight, "methods": row}
     return results
 
@@ -469,35 +463,24 @@ def format_odometry_table(res: dict) -> str:
     return "\n".join(lines)
 
 
-def main_odometry(args) -> int:
+def main_odometry(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
     """``mbavo bench odometry``: generated sequences at each blur preset plus the blurred TUM clip."""
     from .synthetic import blur_real_sequence
 
-    progress = None if args.quiet else sys.stderr
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else list(ODOMETRY_METHODS)
-    if args.no_peers:
-        methods = [m for m in methods if m.startswith("ours_")]
-    _check_methods(methods)
-    root = pathlib.Path(args.out)
+    methods = parse_methods(cfg.methods, cfg.no_peers)
     seqs = {}
-    a = argparse_ns(frames=args.frames - 2, width=args.width, height=args.height, seed=args.seed, quiet=args.quiet)
-    for preset in filter(None, args.presets.split(",")):
-        seqs[preset] = _bench_data(preset, a)
-    for preset in filter(None, args.sensor_presets.split(",")):
-        seqs[f"{preset}_sensor"] = _bench_data(preset, a, depth_model="sensor")
-    if args.tum:
-        tum_src = pathlib.Path(args.tum)
+    for preset in filter(None, cfg.presets.split(",")):
+        seqs[preset] = _bench_data(preset, cfg, cfg.frames, quiet)
+    for preset in filter(None, cfg.sensor_presets.split(",")):
+        seqs[f"{preset}_sensor"] = _bench_data(preset, cfg, cfg.frames, quiet, depth_model="sensor")
+    if cfg.tum:
         tum_out = pathlib.Path("runs") / "bench_tum_blurred"
         if not (tum_out / "exposure.txt").is_file():
-            blur_real_sequence(open_sequence(tum_src), tum_out, blur_px=20.0, progress=progress)
+            blur_real_sequence(open_sequence(cfg.tum), tum_out, blur_px=20.0, progress=not quiet)
         seqs["tum_blurred"] = tum_out
-    res = run_odometry_benchmark(seqs, root, progress=progress, depth_weight=args.depth_weight, methods=methods)
-    print(json.dumps(res, indent=2) if args.format == "json" else format_odometry_table(res))
+    root = pathlib.Path(cfg.out)
+    res = run_odometry_benchmark(seqs, root, progress=not quiet, depth_weight=cfg.depth_weight, methods=methods,
+                                 peer_depth_max=cfg.peer_depth_max)
+    print(json.dumps(res, indent=2) if fmt == "json" else format_odometry_table(res))
     (root / "results.json").write_text(json.dumps(res, indent=2))
     return 0
-
-
-def argparse_ns(**kw):
-    import argparse
-
-    return argparse.Namespace(**kw)

@@ -1,18 +1,22 @@
-"""Blur image formation (main paper Eq. 6, supplement §4-5).
+"""The image-formation model (main paper Eq. 6, supplement §4-5): one function for every user.
 
 A blurry image is the mean of n virtual sharp images along the exposure trajectory. Each pixel x of
-the blurry frame is transferred, for each virtual pose ``T_ref_i``, through the frontal-parallel
-plane Z_ref = d into the sharp keyframe and sampled bilinearly:
+the blurry frame, with unit ray π⁻¹(x) and plane depth d, is transferred for each virtual pose
+``T_ref_i`` through the frontal-parallel plane Z_ref = d into the sharp image and sampled bilinearly:
 
-    B(x) = 1/n Σ_i I_ref(π(T_ref_i · plane(x, d)))
+    v_i(x) = I_ref(π(T_ref_i · plane(x, d)))            (Eqs. 61-68, :func:`virtual_sample`)
+    B(x)   = 1/n Σ_i v_i(x)                              (Eq. 6, :func:`synthesize`)
 
-``reblur`` is the sparse form used by the tracker (vmapped over virtual poses and pixels, n
-static). ``render_blurry`` renders a whole image (scan over virtual poses, so memory stays O(H·W)).
+:func:`synthesize` is the model; the tracker's residuals, :func:`reblur` (sparse pixels),
+:func:`render_blurry` (whole images, in pixel chunks so memory stays bounded), deblurring (its
+linear operator) and the generator's blurring of real clips all call it.
 """
 
 from __future__ import annotations
 
 from functools import partial
+
+import math
 
 import jax
 import jax.numpy as jnp
@@ -20,19 +24,45 @@ from jaxtyping import Array, Bool, Float
 
 from .geometry.camera import PinholeCamera
 from .geometry.pose import Pose
-from .geometry.trajectory import ExposureTrajectory, virtual_poses
-from .geometry.transfer import plane_transfer
-from .image import bilinear
+from .geometry.trajectory import ExposureTrajectory, interpolate, virtual_times
+from .geometry.transfer import plane_point, plane_transfer
+from .image import bilinear_with_gradient
 
-__all__ = ["reblur", "render_blurry", "sample_through_plane", "plane_depths_from_keyframe", "blur_lengths"]
+__all__ = ["virtual_pq", "virtual_sample", "synthesize", "reblur", "render_blurry", "plane_depths_from_keyframe",
+           "blur_lengths", "round_up_pow2"]
+
+RENDER_CHUNK = 4096  # pixels per chunk of ``render_blurry`` (n x chunk samples live at once)
 
 
-def sample_through_plane(keyframe, camera: PinholeCamera, T_ref_i: Pose, x, d):
-    """One virtual sample: I_ref at the transfer of pixel x through the plane at depth d."""
-    x_ref, ok = plane_transfer(T_ref_i, camera, x, d)
-    value, inside = bilinear(keyframe, x_ref)
-    valid = ok & inside
-    return jnp.where(valid, value, 0.0), valid
+def virtual_pq(trajectory: ExposureTrajectory, n: int) -> Float[Array, "n 7"]:
+    """The n virtual poses T_ref_i (Eqs. 43-44) as rows [t (3), q̄ (4)]."""
+    def one(s):
+        p = interpolate(trajectory.start, trajectory.end, s)
+        return jnp.concatenate([p.t, p.q])
+
+    return jax.vmap(one)(virtual_times(n, trajectory.start.q.dtype))
+
+
+def virtual_sample(image: Float[Array, "H W"], camera: PinholeCamera, pq: Float[Array, "7"], ray: Float[Array, "3"], d):
+    """v_i for one pixel at virtual pose pq = [t, q̄]: ``(value, ∇I at the sample (2,), the plane
+    point in the reference frame (3,), valid)``. Invalid samples (ray misses the plane, point behind
+    the reference camera, outside the image) have value 0 and finite derivatives."""
+    p_ref, _, ok = plane_point(pq[3:], pq[:3], ray, d)
+    ok = ok & (p_ref[2] > 1e-6)
+    safe = jnp.where(ok, p_ref, jnp.array([0.0, 0.0, 1.0], p_ref.dtype))
+    value, grad, inside = bilinear_with_gradient(image, camera.project(safe))
+    return value, grad, safe, ok & inside
+
+
+def synthesize(
+    image: Float[Array, "H W"], camera: PinholeCamera, pqs: Float[Array, "n 7"], rays: Float[Array, "R 3"], depths: Float[Array, " R"]
+) -> tuple[Float[Array, " R"], Bool[Array, " R"]]:
+    """Eq. 6: blurry intensities at R pixels (unit rays, plane depths) from the sharp ``image`` and
+    the n virtual poses; a pixel is valid only if all n samples are (invalid pixels are 0)."""
+    per_pose = lambda pq: jax.vmap(lambda ray, d: virtual_sample(image, camera, pq, ray, d))(rays, depths)
+    values, _, _, ok = jax.vmap(per_pose)(pqs)  # (n, R)
+    valid = jnp.all(ok, axis=0)
+    return jnp.where(valid, jnp.mean(values, axis=0), 0.0), valid
 
 
 @partial(jax.jit, static_argnames=("n",))
@@ -41,19 +71,13 @@ def reblur(
     camera: PinholeCamera,
     trajectory: ExposureTrajectory,
     pixels: Float[Array, "P 2"],
-    depths: Float[Array, "P"],
+    depths: Float[Array, " P"],
     n: int,
-) -> tuple[Float[Array, "P"], Bool[Array, "P"]]:
-    """Synthesise blurry intensities at ``pixels`` of the current frame (Eq. 6 of the paper).
-
-    ``depths`` are the plane depths d (Z in the keyframe). A pixel is valid only if all n samples
-    are valid; invalid pixels return 0 (never NaN).
-    """
-    poses = virtual_poses(trajectory, n)
-    per_pose = jax.vmap(lambda T: jax.vmap(lambda x, d: sample_through_plane(keyframe, camera, T, x, d))(pixels, depths))
-    values, valid = per_pose(poses)  # (n, P)
-    all_valid = jnp.all(valid, axis=0)
-    return jnp.where(all_valid, jnp.mean(values, axis=0), 0.0), all_valid
+) -> tuple[Float[Array, " P"], Bool[Array, " P"]]:
+    """:func:`synthesize` at ``pixels`` of the current frame with plane depths ``depths`` (Z in the
+    keyframe) along ``trajectory`` with n virtual frames."""
+    rays = jax.vmap(camera.unit_ray)(pixels)
+    return synthesize(keyframe, camera, virtual_pq(trajectory, n), rays, depths)
 
 
 def _pixel_grid(width: int, height: int, dtype):
@@ -102,28 +126,21 @@ def render_blurry(
     trajectory: ExposureTrajectory,
     n: int,
 ) -> tuple[Float[Array, "H W"], Bool[Array, "H W"]]:
-    """Render a whole blurry image of the current frame (same size as the keyframe).
-
-    ``plane_depths`` holds d for every pixel of the current frame (e.g. from
-    ``plane_depths_from_keyframe``); NaN or non-positive depth marks a pixel invalid. Returns the
-    image and a validity mask (every virtual sample inside the keyframe); invalid pixels are 0.
-    """
+    """A whole blurry image of the current frame (same size as the keyframe): :func:`synthesize` on
+    every pixel, in chunks of ``RENDER_CHUNK`` pixels. ``plane_depths`` holds d per pixel (e.g. from
+    :func:`plane_depths_from_keyframe`); NaN or non-positive depth marks a pixel invalid. Returns
+    the image and its validity mask; invalid pixels are 0."""
     h, w = keyframe.shape
-    grid = _pixel_grid(w, h, keyframe.dtype)
     d = plane_depths.ravel()
     d_ok = jnp.isfinite(d) & (d > 0)
-    d_safe = jnp.where(d_ok, d, 1.0)
-    poses = virtual_poses(trajectory, n)
-
-    def accumulate(carry, T):
-        total, valid = carry
-        vals, ok = jax.vmap(lambda x, di: sample_through_plane(keyframe, camera, T, x, di))(grid, d_safe)
-        return (total + vals, valid & ok), None
-
-    init = (jnp.zeros(h * w, keyframe.dtype), d_ok)
-    (total, valid), _ = jax.lax.scan(accumulate, init, poses)
-    image = jnp.where(valid, total / n, 0.0)
-    return image.reshape(h, w), valid.reshape(h, w)
+    rays = jax.vmap(camera.unit_ray)(_pixel_grid(w, h, keyframe.dtype))
+    pqs = virtual_pq(trajectory, n)
+    pad = (-h * w) % RENDER_CHUNK
+    rays = jnp.pad(rays, ((0, pad), (0, 0)), constant_values=1.0).reshape(-1, RENDER_CHUNK, 3)
+    depths = jnp.pad(jnp.where(d_ok, d, 1.0), (0, pad), constant_values=1.0).reshape(-1, RENDER_CHUNK)
+    values, valid = jax.lax.map(lambda rd: synthesize(keyframe, camera, pqs, *rd), (rays, depths))
+    values, valid = values.ravel()[: h * w], valid.ravel()[: h * w] & d_ok
+    return jnp.where(valid, values, 0.0).reshape(h, w), valid.reshape(h, w)
 
 
 def blur_lengths(
@@ -144,3 +161,10 @@ def blur_lengths(
     xe, fe = at(trajectory.end)
     valid = ok_d & fs & fe
     return jnp.where(valid, jnp.linalg.norm(xs - xe, axis=1), 0.0), valid
+
+
+def round_up_pow2(need: float, lo: int, hi: int) -> int:
+    """Virtual frames for ``need`` samples: the next power of two at or above max(need, lo), at most
+    ``hi`` (powers of two keep the compiled programs few)."""
+    need = max(lo, math.ceil(max(need, 0.0)))
+    return int(min(hi, 2 ** math.ceil(math.log2(need))))

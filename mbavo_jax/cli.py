@@ -1,6 +1,7 @@
-"""The ``mbavo`` command line: ``mbavo jacobians | synth | eval | track | deblur | bench``.
+"""The ``mbavo`` command line: ``mbavo jacobians | synth | eval | track | deblur | demo | info | bench | config``.
 
 Known errors (bad input files, bad options) print one line ``mbavo: error: ...`` and exit 1.
+Building the parser and rejecting arguments import no JAX; each command imports what it needs.
 """
 
 from __future__ import annotations
@@ -9,10 +10,24 @@ import argparse
 import json
 import sys
 
-__all__ = ["main"]
-
-
+from .config import PRESETS, BenchConfig, DeblurConfig, SynthConfig, add_arguments, from_arguments
 from .errors import MbavoError as UserError  # every user-facing error: one line, exit status 1
+from .methods import ODOMETRY_METHODS
+
+__all__ = ["main", "build_parser"]
+
+KINDS = ["auto", "tum", "kitti", "euroc", "dso", "folder"]
+PRESET_BLUR_PX = {"none": 0.0, "mild": 5.0, "strong": 20.0, "extreme": 40.0}  # synth --from: mean blur per preset
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line argument errors and exit status 1, like every other error."""
+
+    def error(self, message):
+        self.exit(1, f"mbavo: error: {message}\n")
+
+
+# ------------------------------------------------------------------------------------- commands
 
 
 def _cmd_jacobians(args) -> int:
@@ -27,34 +42,42 @@ def _cmd_jacobians(args) -> int:
 
 
 def _cmd_synth(args) -> int:
-    import dataclasses
-
-    from .synthetic import PRESETS, SynthConfig, blur_real_sequence, generate_sequence
-
-    progress = None if args.quiet else sys.stderr
     if args.source:
         from .datasets import open_sequence
+        from .synthetic import blur_real_sequence
 
         seq = open_sequence(args.source)
-        blur = args.blur_px if args.blur_px is not None else {"none": 0.0, "mild": 5.0, "strong": 20.0, "extreme": 40.0}[args.preset]
-        summary = blur_real_sequence(seq, args.out, blur_px=blur, n=args.subframes or 64, seed=args.seed, noise=args.noise or 0.0, progress=progress)
+        blur = args.blur_px if args.blur_px is not None else PRESET_BLUR_PX[args.preset]
+        summary = blur_real_sequence(seq, args.out, blur_px=blur, n=args.subframes or 64, seed=args.seed or 0,
+                                     noise=args.noise or 0.0, progress=not args.quiet)
     else:
-        values = dict(PRESETS[args.preset])
-        for key in ("frames", "width", "height", "fps", "exposure_ms", "speed", "rotation_rate", "subframes", "noise", "seed", "depth_model"):
-            v = getattr(args, key)
-            if v is not None:
-                values[key] = v
-        values["real_textures"] = not args.no_real_textures
-        cfg = SynthConfig(**{k: v for k, v in values.items() if k in {f.name for f in dataclasses.fields(SynthConfig)}})
-        if cfg.frames < 1 or cfg.width < 16 or cfg.height < 16:
-            raise UserError("need --frames >= 1 and an image of at least 16x16 pixels")
-        summary = generate_sequence(cfg, args.out, progress=progress)
+        cfg = from_arguments(SynthConfig, args, PRESETS[args.preset])
+        from .synthetic import generate_sequence
+
+        summary = generate_sequence(cfg, args.out, progress=not args.quiet)
     if not args.quiet:
         print(
             f"wrote {summary['frames']} frames to {args.out}: mean blur {summary['mean_blur_px']:.1f} px "
             f"(median {summary['median_blur_px']:.1f}, max {summary['max_blur_px']:.1f}) in {summary['seconds']:.1f} s"
         )
     return 0
+
+
+def _eval_plots(args, res: dict, errors, t_ref, p_ref, t_est, p_est) -> None:
+    import pathlib
+
+    from . import evaluation as ev
+    from .evaluation import plots
+
+    out = pathlib.Path(args.plot)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.metric == "ape":
+        i_est, _, ref_xyz, est_xyz = ev.aligned_positions(t_ref, p_ref, t_est, p_est, args.align, args.t_max_diff)
+        plots.plot_trajectories(out / "trajectory.png", ref_xyz, est_xyz, f"APE rmse {res['rmse']:.4f} m ({args.align})")
+        plots.plot_error_over_time(out / "ape_over_time.png", t_est[i_est], errors, "APE over time")
+    else:
+        i_est, _ = ev.associate(t_est, t_ref, args.t_max_diff)
+        plots.plot_error_over_time(out / "rpe_over_time.png", t_est[i_est][: len(errors)], errors, "RPE over time", "RPE [m]")
 
 
 def _cmd_eval(args) -> int:
@@ -83,27 +106,14 @@ def _cmd_eval(args) -> int:
         res["frame_drop_rate"] = ev.frame_drop_rate(seq.timestamps, t_est, args.t_max_diff)
     errors = np.asarray(res.pop("errors"))
     if args.plot:
-        import pathlib
-
-        from .evaluation import plots
-
-        out = pathlib.Path(args.plot)
-        out.mkdir(parents=True, exist_ok=True)
-        i_est, i_ref = ev.associate(t_est, t_ref, args.t_max_diff)
-        if args.metric == "ape":
-            from .evaluation.metrics import _align, pose_matrices
-
-            T_al = _align(pose_matrices(p_ref[i_ref]), pose_matrices(p_est[i_est]), args.align)[0]
-            plots.plot_trajectories(out / "trajectory.png", p_ref[i_ref, :3], T_al[:, :3, 3], f"APE rmse {res['rmse']:.4f} m ({args.align})")
-            plots.plot_error_over_time(out / "ape_over_time.png", t_est[i_est], errors, "APE over time")
-        else:
-            plots.plot_error_over_time(out / "rpe_over_time.png", t_est[i_est][: len(errors)], errors, "RPE over time", "RPE [m]")
+        _eval_plots(args, res, errors, t_ref, p_ref, t_est, p_est)
     _print_result(res, args.format, ["n_matched", "alignment", "scale", "delta", "frame_drop_rate"])
     return 0
 
 
 def _cmd_info(args) -> int:
     from .datasets import open_sequence
+    from .progress import bar
 
     seq = open_sequence(args.sequence, args.kind)
     cam = seq.camera
@@ -119,10 +129,10 @@ def _cmd_info(args) -> int:
         "exposure_paths": 0 if seq.exposure_paths is None else int(len(seq.exposure_paths[0])),
     }
     if args.check:
-        for i in range(len(seq)):
-            seq[i]  # raises DataError naming the file on a bad frame
-            if not args.quiet and sys.stderr.isatty():
-                sys.stderr.write(f"\rchecked {i + 1}/{len(seq)}")
+        with bar(len(seq), "check", not args.quiet) as pbar:
+            for i in range(len(seq)):
+                seq[i]  # raises DataError naming the file on a bad frame
+                pbar.update()
         info["checked"] = True
     if args.format == "json":
         print(json.dumps(info, indent=2))
@@ -132,57 +142,26 @@ def _cmd_info(args) -> int:
     return 0
 
 
-def _tracker_setup(args, seq):
-    from .odometry import load_config, sequence_calibration
+def _run_config(args, seq):
+    """The settings of a run: defaults, ``--config``, the sequence's camera.yaml calibration, ``--set``."""
+    from .config import calibration_of, load_config
 
-    overrides = list(args.set or [])
-    for key, value in sequence_calibration(seq).items():  # camera.yaml's response γ and depth noise
-        if not any(o.startswith(f"tracker.{key}=") for o in overrides):
-            overrides.insert(0, f"tracker.{key}={json.dumps(list(value) if isinstance(value, tuple) else value)}")
-    return load_config(args.config, overrides)
-
-
-def _evaluate_run(seq, out, quiet=False) -> dict:
-    import numpy as np
-
-    from . import evaluation as ev
-    from .evaluation import plots
-    from .io import read_tum_trajectory
-
-    res = {}
-    if seq.groundtruth is None or not (out / "trajectory.txt").is_file():
-        return res
-    t_est, p_est = read_tum_trajectory(out / "trajectory.txt")
-    t_gt, p_gt = seq.groundtruth
-    if len(t_est) < 3:
-        return res
-    try:
-        ape = ev.ape(t_gt, p_gt, t_est, p_est, align="se3", max_diff=0.02)
-    except UserError:
-        return res
-    res["ate_rmse_m"] = ape["rmse"]
-    res["ate_median_m"] = ape["median"]
-    res["frame_drop_rate"] = ev.frame_drop_rate(seq.timestamps, t_est, 0.02)
-    i_est, i_ref = ev.associate(t_est, t_gt, 0.02)
-    from .evaluation.metrics import _align, pose_matrices
-
-    T_al = _align(pose_matrices(p_gt[i_ref]), pose_matrices(p_est[i_est]), "se3")[0]
-    plots.plot_trajectories(out / "trajectory.png", p_gt[i_ref, :3], T_al[:, :3, 3], f"ATE rmse {ape['rmse']:.4f} m (SE3)")
-    plots.plot_error_over_time(out / "ape_over_time.png", t_est[i_est], np.asarray(ape["errors"]), "APE over time")
-    return res
+    return load_config(args.config, args.set, calibration_of(seq.meta))
 
 
 def _cmd_track(args) -> int:
     import pathlib
 
     from .datasets import open_sequence
-    from .odometry import run_odometry
+    from .evaluation import evaluate_run
 
     seq = open_sequence(args.sequence, args.kind)
-    tracker, odo = _tracker_setup(args, seq)
+    config = _run_config(args, seq)
+    from .odometry import run_odometry
+
     out = pathlib.Path(args.out)
-    summary = run_odometry(seq, out, tracker, odo, resume=args.resume, max_frames=args.max_frames, progress=None if args.quiet else sys.stderr)
-    summary.update(_evaluate_run(seq, out))
+    summary = run_odometry(seq, out, config, resume=args.resume, max_frames=args.max_frames, progress=not args.quiet)
+    summary.update(evaluate_run(out, seq.groundtruth, seq.timestamps, config.evaluation, plots=True))
     summary["out"] = str(out)
     if args.format == "json":
         print(json.dumps(summary, indent=2))
@@ -195,12 +174,15 @@ def _cmd_track(args) -> int:
 def _cmd_deblur(args) -> int:
     import pathlib
 
+    cfg = from_arguments(DeblurConfig, args)
     import cv2
     import jax.numpy as jnp
     import numpy as np
 
+    from .config import EvalConfig
     from .datasets import open_sequence
     from .deblur import deblur, psnr, ssim
+    from .evaluation import associate
     from .geometry import ExposureTrajectory, Pose
     from .io import read_exposure_file, read_image_gray
 
@@ -212,13 +194,14 @@ def _cmd_deblur(args) -> int:
         raise UserError(f"{seq.path}: deblurring needs depth")
     source = pathlib.Path(args.exposure) if args.exposure else pathlib.Path(seq.path) / "exposure.txt"
     stamps, starts, ends = read_exposure_file(source)
-    j = int(np.argmin(np.abs(stamps - frame.timestamp)))
-    if abs(stamps[j] - frame.timestamp) > 0.01:
-        raise UserError(f"{source}: no exposure path within 0.01 s of frame {args.frame} ({frame.timestamp:.6f})")
+    tol = EvalConfig().t_max_diff
+    _, match = associate(np.array([frame.timestamp]), stamps, tol)
+    if len(match) == 0:
+        raise UserError(f"{source}: no exposure path within {tol} s (evaluation.t_max_diff) of frame {args.frame} ({frame.timestamp:.6f})")
+    j = int(match[0])
     P = lambda v: Pose.from_vector(jnp.asarray(v, jnp.float32))
     traj = ExposureTrajectory(P(starts[j]), P(ends[j]))
-    gamma = float(seq.meta.get("response_gamma", 1.0))
-    sharp = deblur(frame.image, frame.depth, seq.camera, traj, args.n, args.iterations, args.regularization, gamma)
+    sharp = deblur(frame.image, frame.depth, seq.camera, traj, cfg, float(seq.meta.get("response_gamma", 1.0)))
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     name = f"{frame.timestamp:.6f}.png"
@@ -237,27 +220,46 @@ def _cmd_demo(args) -> int:
     import pathlib
 
     from .datasets import open_sequence
+    from .evaluation import evaluate_run
     from .odometry import run_odometry
-    from .synthetic import PRESETS, SynthConfig, generate_sequence
+    from .synthetic import generate_sequence
 
     out = pathlib.Path(args.out)
     data = out / "sequence"
-    progress = None if args.quiet else sys.stderr
     if not (data / "exposure.txt").is_file():
         cfg = SynthConfig(**{**PRESETS[args.preset], "frames": args.frames, "width": args.width, "height": args.height, "seed": args.seed})
         print(f"generating a {args.preset}-blur sequence: {args.frames} frames {args.width}x{args.height} -> {data}", flush=True)
-        generate_sequence(cfg, data, progress=progress)
+        generate_sequence(cfg, data, progress=not args.quiet)
     seq = open_sequence(data)
-    args.set, args.config = args.set or [], args.config
-    tracker, odo = _tracker_setup(args, seq)
+    config = _run_config(args, seq)
     run = out / "track"
-    print(f"tracking with n={tracker.n} virtual frames -> {run}", flush=True)
-    summary = run_odometry(seq, run, tracker, odo, progress=progress)
-    summary.update(_evaluate_run(seq, run))
+    print(f"tracking with n={config.tracker.n} virtual frames -> {run}", flush=True)
+    summary = run_odometry(seq, run, config, progress=not args.quiet)
+    summary.update(evaluate_run(run, seq.groundtruth, seq.timestamps, config.evaluation, plots=True))
     print(
         f"tracked {summary['tracked']}/{summary['frames']} frames, {summary['keyframes']} keyframes, "
         f"ATE rmse {summary.get('ate_rmse_m', float('nan')):.4f} m; plots: {run / 'trajectory.png'}, {run / 'ape_over_time.png'}"
     )
+    return 0
+
+
+def _cmd_bench(args) -> int:
+    from .methods import parse_methods
+
+    cfg = from_arguments(BenchConfig, args)
+    if args.what == "odometry":
+        parse_methods(cfg.methods, cfg.no_peers)  # reject unknown methods before loading JAX
+    from . import bench
+
+    if args.what == "tracking":
+        return bench.main_tracking(cfg, args.data, args.format, args.quiet)
+    return bench.main_odometry(cfg, args.format, args.quiet)
+
+
+def _cmd_config(args) -> int:
+    from .config import default_yaml, settings_markdown
+
+    print(settings_markdown() if args.markdown else default_yaml(), end="")
     return 0
 
 
@@ -277,121 +279,138 @@ def _print_result(res: dict, fmt: str, extra_keys, nested=()) -> None:
             print(f"{k:>8}  {res[k]}")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="mbavo", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+# --------------------------------------------------------------------------------------- parser
 
-    p = sub.add_parser("jacobians", help="cross-validate the supplement's Jacobians against autodiff (float64)")
+
+def _format_flag(p) -> None:
     p.add_argument("--format", choices=["table", "json"], default="table")
+
+
+def _quiet_flag(p, help: str = "no progress output") -> None:
+    p.add_argument("-q", "--quiet", action="store_true", help=help)
+
+
+def _config_flags(p) -> None:
+    p.add_argument("--config", help="YAML with tracker:, odometry:, deblur:, evaluation: sections (configs/default.yaml; `mbavo config` prints it)")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override a setting, e.g. tracker.n=32 (repeatable)")
+
+
+def _add_jacobians(sub) -> None:
+    p = sub.add_parser("jacobians", help="cross-validate the supplement's Jacobians against autodiff (float64)")
+    _format_flag(p)
     p.add_argument("--seed", type=int, default=0, help="seed of the random samples (default 0)")
     p.set_defaults(func=_cmd_jacobians)
 
-    p = sub.add_parser("synth", help="generate a blurry sequence with ground-truth exposure paths (TUM layout)")
+
+def _add_synth(sub) -> None:
+    p = sub.add_parser("synth", help="generate a blurry sequence with ground-truth exposure paths (TUM layout)",
+                       description="Settings not given come from --preset (exposure, speed, rotation rate, sub-frames), "
+                                   "then from the defaults shown.")
     p.add_argument("--out", required=True, help="output folder (created; must be empty or a previous synth output)")
-    p.add_argument("--preset", choices=["none", "mild", "strong", "extreme"], default="strong",
+    p.add_argument("--preset", choices=list(PRESETS), default="strong",
                    help="blur level: mean blur ~0 / 5 / 20 / 40 px at 640x480 (default strong)")
     p.add_argument("--from", dest="source", metavar="SEQ", help="blur a real RGB-D sequence (with depth) instead of rendering")
     p.add_argument("--blur-px", type=float, help="with --from: mean blur length in pixels (default from --preset)")
-    p.add_argument("--frames", type=int, help="number of frames (default 100)")
-    p.add_argument("--width", type=int, help="image width (default 640)")
-    p.add_argument("--height", type=int, help="image height (default 480)")
-    p.add_argument("--fps", type=float, help="frame rate (default 30)")
-    p.add_argument("--exposure-ms", dest="exposure_ms", type=float, help="exposure time τ in ms (preset)")
-    p.add_argument("--speed", type=float, help="peak camera speed in m/s (preset)")
-    p.add_argument("--rotation-rate", dest="rotation_rate", type=float, help="peak rotation rate in deg/s (preset)")
-    p.add_argument("--subframes", type=int, help="sub-frame renders per exposure (default 64)")
-    p.add_argument("--noise", type=float, help="Gaussian noise std on [0, 1] intensities (default 0.002)")
-    p.add_argument("--depth-model", dest="depth_model", choices=["exact", "sensor"],
-                   help="depth written: exact mid-exposure z-depth (default), or as a Kinect-class sensor writes it "
-                        "(correlated noise growing with z², holes at depth edges, 1%% dropouts)")
-    p.add_argument("--seed", type=int, default=0, help="seed (output is deterministic for a seed)")
-    p.add_argument("--no-real-textures", action="store_true", help="procedural textures only (no ../shared/data photos)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    add_arguments(p, SynthConfig)
+    _quiet_flag(p)
     p.set_defaults(func=_cmd_synth)
 
-    p = sub.add_parser("bench", help="benchmarks: 'tracking' (frame pairs, vs Open3D/OpenCV) and 'odometry' (whole sequences, ATE)")
-    p.add_argument("what", choices=["tracking", "odometry"])
-    p.add_argument("--data", help="a generated sequence (default: generate runs/bench_<preset>_<w>x<h>)")
-    p.add_argument("--frames", type=int, default=20, help="frame pairs to track (default 20)")
-    p.add_argument("--preset", default="strong,none", help="comma-separated blur presets to generate and run (default strong,none)")
-    p.add_argument("--width", type=int, default=640)
-    p.add_argument("--height", type=int, default=480)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--no-peers", action="store_true", help="skip Open3D and OpenCV")
-    p.add_argument("--presets", default="none,mild,strong,extreme", help="odometry: blur presets (default all four)")
-    p.add_argument("--sensor-presets", dest="sensor_presets", default="strong,extreme",
-                   help="odometry: presets generated again with Kinect-class depth (--depth-model sensor; '' to skip)")
-    p.add_argument("--tum", default="../shared/data/tum_fr1_xyz_head37", help="odometry: real RGB-D clip to blur ('' to skip)")
-    p.add_argument("--out", default="runs/bench_odometry", help="odometry: output folder")
-    p.add_argument("--methods", default="", help="odometry: comma-separated subset of " + ", ".join(__import__("mbavo_jax.bench", fromlist=["x"]).ODOMETRY_METHODS) + " (default all)")
-    p.add_argument("--depth-weight", dest="depth_weight", type=float, default=0.03,
-                   help="odometry: tracker.depth_weight of the *_depth methods (default 0.03)")
-    p.add_argument("--format", choices=["table", "json"], default="table")
-    p.add_argument("-q", "--quiet", action="store_true")
-    p.set_defaults(func=lambda a: getattr(__import__("mbavo_jax.bench", fromlist=["x"]), f"main_{a.what}")(a))
 
+def _add_bench(sub) -> None:
+    p = sub.add_parser("bench", help="benchmarks: 'tracking' (frame pairs, vs Open3D/OpenCV) and 'odometry' (whole sequences, ATE)",
+                       description="odometry methods: " + ", ".join(ODOMETRY_METHODS))
+    p.add_argument("what", choices=["tracking", "odometry"])
+    p.add_argument("--data", help="tracking: a generated sequence (default: generate runs/bench_<preset>_<w>x<h>_seed<s>)")
+    add_arguments(p, BenchConfig, skip=("no_peers",))
+    p.add_argument("--no-peers", dest="no_peers", action="store_true", default=None, help="skip Open3D and OpenCV")
+    _format_flag(p)
+    _quiet_flag(p)
+    p.set_defaults(func=_cmd_bench)
+
+
+def _add_track(sub) -> None:
     p = sub.add_parser("track", help="motion-blur-aware RGB-D visual odometry over a sequence")
     p.add_argument("sequence", help="sequence folder (TUM RGB-D, mbavo synth output, DSO with depth/)")
     p.add_argument("--out", required=True, help="output folder (trajectory.txt, exposure.txt, keyframes.txt, plots)")
-    p.add_argument("--config", help="YAML with 'tracker:' and 'odometry:' sections (see configs/)")
-    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override a config value, e.g. tracker.n=32 (repeatable)")
+    _config_flags(p)
     p.add_argument("--resume", action="store_true", help="continue after the last frame already in OUT/trajectory.txt")
     p.add_argument("--max-frames", type=int, help="stop after this many frames")
-    p.add_argument("--kind", default="auto", choices=["auto", "tum", "kitti", "euroc", "dso", "folder"])
-    p.add_argument("--format", choices=["table", "json"], default="table")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--kind", default="auto", choices=KINDS)
+    _format_flag(p)
+    _quiet_flag(p, "no progress bar")
     p.set_defaults(func=_cmd_track)
 
+
+def _add_deblur(sub) -> None:
     p = sub.add_parser("deblur", help="deblur one frame with its exposure path and depth; PSNR/SSIM vs sharp/ if present")
     p.add_argument("sequence")
     p.add_argument("--frame", type=int, required=True, help="frame index")
     p.add_argument("--exposure", help="exposure file (default: the sequence's exposure.txt; or a 'mbavo track' output)")
     p.add_argument("--out", required=True)
-    p.add_argument("--n", type=int, default=0, help="virtual frames of the blur operator (default 0: one per pixel of blur, power of two, at most 64)")
-    p.add_argument("--iterations", type=int, default=30, help="conjugate-gradient iterations (default 30)")
-    p.add_argument("--regularization", type=float, default=2e-2, help="weight of the gradient penalty (default 2e-2)")
-    p.add_argument("--format", choices=["table", "json"], default="table")
+    add_arguments(p, DeblurConfig)
+    _format_flag(p)
     p.set_defaults(func=_cmd_deblur)
 
+
+def _add_demo(sub) -> None:
     p = sub.add_parser("demo", help="generate a short blurry sequence, track it, print the ATE and write plots (no downloads)")
     p.add_argument("--out", default="runs/demo")
-    p.add_argument("--preset", choices=["none", "mild", "strong", "extreme"], default="strong")
+    p.add_argument("--preset", choices=list(PRESETS), default="strong")
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=240)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--config", help="YAML config (see configs/)")
-    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _config_flags(p)
+    _quiet_flag(p)
     p.set_defaults(func=_cmd_demo)
 
+
+def _add_info(sub) -> None:
     p = sub.add_parser("info", help="describe a sequence (layout, camera, depth, ground truth); --check reads every frame")
     p.add_argument("sequence")
-    p.add_argument("--kind", default="auto", choices=["auto", "tum", "kitti", "euroc", "dso", "folder"])
+    p.add_argument("--kind", default="auto", choices=KINDS)
     p.add_argument("--check", action="store_true", help="read and validate every frame")
-    p.add_argument("--format", choices=["table", "json"], default="table")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _format_flag(p)
+    _quiet_flag(p)
     p.set_defaults(func=_cmd_info)
 
-    p = sub.add_parser("eval", help="evaluate an estimated trajectory (APE, RPE) or exposure paths")
+
+def _add_eval(sub) -> None:
+    p = sub.add_parser("eval", help="evaluate an estimated trajectory (APE, RPE) or exposure paths, as evo does")
     p.add_argument("metric", choices=["ape", "rpe", "exposure"])
     p.add_argument("reference", help="ground truth (TUM file; exposure.txt for 'exposure')")
     p.add_argument("estimate", help="estimate (TUM file; exposure.txt for 'exposure')")
     p.add_argument("--align", "-a", choices=["none", "se3", "sim3"], default="se3", help="Umeyama alignment (default se3)")
-    p.add_argument("--t_max_diff", type=float, default=0.01, help="max timestamp difference for association in s (default 0.01)")
+    p.add_argument("--t_max_diff", type=float, default=0.01,
+                   help="max timestamp difference for association in s (default 0.01, evo's; mbavo track uses evaluation.t_max_diff)")
     p.add_argument("--delta", type=int, default=1, help="RPE frame delta (default 1)")
     p.add_argument("--sequence", help="sequence folder: also report the frame-drop rate")
     p.add_argument("--camera", help="camera.yaml (needed for 'exposure')")
     p.add_argument("--depth", type=float, default=2.0, help="'exposure': depth of the reprojection grid in m (default 2)")
     p.add_argument("--plot", metavar="DIR", help="write PNG plots to DIR")
-    p.add_argument("--format", choices=["table", "json"], default="table")
+    _format_flag(p)
     p.set_defaults(func=_cmd_eval)
+
+
+def _add_config(sub) -> None:
+    p = sub.add_parser("config", help="print every setting with its default and help (configs/default.yaml)")
+    p.add_argument("--markdown", action="store_true", help="the settings reference tables of docs/settings.md instead")
+    p.set_defaults(func=_cmd_config)
+
+
+SUBCOMMANDS = (_add_jacobians, _add_synth, _add_bench, _add_track, _add_deblur, _add_demo, _add_info, _add_eval, _add_config)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="mbavo", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in SUBCOMMANDS:
+        add(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)  # argument errors: one line, exit 1
     try:
         return int(args.func(args) or 0)
     except UserError as exc:

@@ -17,18 +17,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .blur import blur_lengths, plane_depths_from_keyframe, render_blurry
+from .blur import blur_lengths, plane_depths_from_keyframe, render_blurry, round_up_pow2
+from .config import DeblurConfig
 from .geometry.camera import PinholeCamera
 from .geometry.pose import Pose
 from .geometry.trajectory import ExposureTrajectory
+from .image import delinearize, linearize
 
-__all__ = ["deblur", "choose_deblur_n", "deblur_virtual_frames", "exposure_blur_px", "exposure_about_mid", "psnr", "ssim"]
-
-
-def exposure_about_mid(traj: ExposureTrajectory) -> ExposureTrajectory:
-    """The exposure path relative to its own mid-exposure pose (T_mid_start, T_mid_end)."""
-    mid_inv = traj.middle().inverse()
-    return ExposureTrajectory(mid_inv.compose(traj.start), mid_inv.compose(traj.end))
+__all__ = ["deblur", "choose_deblur_n", "exposure_blur_px", "psnr", "ssim"]
 
 
 def exposure_blur_px(depth, camera: PinholeCamera, trajectory: ExposureTrajectory, stride: int = 8) -> tuple[float, float]:
@@ -37,7 +33,7 @@ def exposure_blur_px(depth, camera: PinholeCamera, trajectory: ExposureTrajector
     d = jnp.asarray(np.asarray(depth, np.float32)[::stride, ::stride])
     v, u = np.mgrid[0 : depth.shape[0] : stride, 0 : depth.shape[1] : stride]
     pixels = jnp.asarray(np.stack([u.ravel(), v.ravel()], 1), jnp.float32)
-    lengths, valid = jax.device_get(_blur_lengths(camera, pixels, d.ravel(), exposure_about_mid(trajectory)))
+    lengths, valid = jax.device_get(_blur_lengths(camera, pixels, d.ravel(), trajectory.about_middle()))
     lengths = lengths[valid]
     if lengths.size == 0:
         return 0.0, 0.0
@@ -47,17 +43,12 @@ def exposure_blur_px(depth, camera: PinholeCamera, trajectory: ExposureTrajector
 _blur_lengths = jax.jit(blur_lengths)
 
 
-def deblur_virtual_frames(blur_px: float, n_max: int = 64, n_min: int = 8) -> int:
-    """Virtual frames for deconvolving a blur of ``blur_px`` pixels (95th percentile): one per pixel
-    of blur so the blur operator's samples leave no gaps (gaps make the deconvolution ring), rounded
-    up to a power of two (few compiled programs) in [n_min, n_max]."""
-    need = max(n_min, int(np.ceil(max(blur_px, 0.0))))
-    return int(min(n_max, 2 ** int(np.ceil(np.log2(need)))))
-
-
-def choose_deblur_n(depth, camera: PinholeCamera, trajectory: ExposureTrajectory, n: int = 0, n_max: int = 64) -> int:
-    """``n`` if positive, else :func:`deblur_virtual_frames` of the frame's 95th-percentile blur."""
-    return n if n > 0 else deblur_virtual_frames(exposure_blur_px(depth, camera, trajectory)[1], n_max)
+def choose_deblur_n(depth, camera: PinholeCamera, trajectory: ExposureTrajectory, config: DeblurConfig = DeblurConfig()) -> int:
+    """``config.n`` if positive, else one virtual frame per pixel of the frame's 95th-percentile blur
+    (gaps between virtual frames make the deconvolution ring), a power of two in [n_min, n_max]."""
+    if config.n > 0:
+        return config.n
+    return round_up_pow2(exposure_blur_px(depth, camera, trajectory)[1], config.n_min, config.n_max)
 
 
 def _grad_ops(x):
@@ -105,27 +96,16 @@ def _deblur(blurry, planes, camera, traj, lam, n, iterations):
     return jnp.clip(x, 0.0, 1.0)
 
 
-def deblur(
-    blurry,
-    depth,
-    camera: PinholeCamera,
-    trajectory: ExposureTrajectory,
-    n: int = 0,
-    iterations: int = 30,
-    regularization: float = 2e-2,
-    response_gamma: float = 1.0,
-):
+def deblur(blurry, depth, camera: PinholeCamera, trajectory: ExposureTrajectory, config: DeblurConfig = DeblurConfig(),
+           response_gamma: float = 1.0) -> np.ndarray:
     """Sharp mid-exposure image of a blurry frame, given its depth (metres, NaN = none) and its
     exposure path (any reference frame: it is re-expressed about its own mid pose). Works in
-    linear radiance (``response_gamma``) and returns display intensities in [0, 1]. ``n = 0``
-    chooses the virtual frames from the blur (:func:`deblur_virtual_frames`, at most 64)."""
-    n = choose_deblur_n(depth, camera, trajectory, n)
-    traj = exposure_about_mid(trajectory)
-    img = np.clip(np.asarray(blurry, np.float32), 0, 1) ** np.float32(response_gamma)
-    d = np.asarray(depth, np.float32)
-    planes = plane_depths_from_keyframe(jnp.asarray(d), camera, Pose.identity())
-    x = _deblur(jnp.asarray(img), planes, camera, traj, jnp.float32(regularization), n, iterations)
-    return np.asarray(x) ** np.float32(1.0 / response_gamma)
+    linear radiance (``response_gamma``) and returns display intensities in [0, 1]."""
+    n = choose_deblur_n(depth, camera, trajectory, config)
+    planes = plane_depths_from_keyframe(jnp.asarray(np.asarray(depth, np.float32)), camera, Pose.identity())
+    x = _deblur(jnp.asarray(linearize(blurry, response_gamma)), planes, camera, trajectory.about_middle(),
+                jnp.float32(config.regularization), n, config.iterations)
+    return delinearize(np.asarray(x), response_gamma)
 
 
 def psnr(a, b, mask=None) -> float:

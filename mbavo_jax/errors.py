@@ -19,5 +19,5 @@ class DataError(MbavoError):
         self.line = line
 
 
-class ConfigError(MbavoError):
-    """An unknown or invalid configuration key or value."""
+class ConfigError(MbavoError, ValueError):
+    """An unknown or invalid configuration key or value (also a ValueError: a bad argument)."""

@@ -1,12 +1,14 @@
-"""Image sampling and pyramids: bilinear interpolation with validity masks, 2x2 pyramids."""
+"""Images: bilinear sampling with validity masks (the one sampler of the project), 2x2 pyramids and
+the photometric calibration (display intensities <-> linear radiance)."""
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
-__all__ = ["bilinear_cell", "bilinear", "bilinear_many", "downsample", "pyramid", "gradient_magnitude"]
+__all__ = ["bilinear_cell", "lerp_cell", "bilinear", "bilinear_with_gradient", "bilinear_wrapped", "downsample",
+           "pyramid", "linearize", "delinearize"]
 
 
 def bilinear_cell(image: Float[Array, "H W"], x: Float[Array, "2"], border: float = 0.0):
@@ -25,10 +27,19 @@ def bilinear_cell(image: Float[Array, "H W"], x: Float[Array, "2"], border: floa
     safe = jnp.where(valid, x, jnp.zeros_like(x))
     u = jnp.clip(safe[0], 0.0, w - 1.0)
     v = jnp.clip(safe[1], 0.0, h - 1.0)
-    u0 = jnp.clip(jnp.floor(u), 0, w - 2).astype(jnp.int32)
-    v0 = jnp.clip(jnp.floor(v), 0, h - 2).astype(jnp.int32)
+    fu0 = jnp.clip(jnp.floor(u), 0, w - 2)
+    fv0 = jnp.clip(jnp.floor(v), 0, h - 2)
+    u0, v0 = fu0.astype(jnp.int32), fv0.astype(jnp.int32)
     corners = (image[v0, u0], image[v0, u0 + 1], image[v0 + 1, u0], image[v0 + 1, u0 + 1])
-    return valid, u - u0, v - v0, corners
+    return valid, u - fu0, v - fv0, corners
+
+
+def lerp_cell(fu, fv, corners):
+    """The bilinear interpolant inside a cell: ``(value, top, bottom)`` (rows v0 and v0+1 at fu)."""
+    i00, i01, i10, i11 = corners
+    top = i00 + fu * (i01 - i00)
+    bottom = i10 + fu * (i11 - i10)
+    return top + fv * (bottom - top), top, bottom
 
 
 def bilinear(image: Float[Array, "H W"], x: Float[Array, "2"], border: float = 0.0):
@@ -37,15 +48,31 @@ def bilinear(image: Float[Array, "H W"], x: Float[Array, "2"], border: float = 0
     Returns ``(value, valid)``; outside ``[border, size-1-border]`` the sample is masked: valid is
     False and value is 0, with finite gradients (coordinates are clipped before use).
     """
-    valid, fu, fv, (i00, i01, i10, i11) = bilinear_cell(image, x, border)
-    top = i00 + fu * (i01 - i00)
-    bottom = i10 + fu * (i11 - i10)
-    value = top + fv * (bottom - top)
+    valid, fu, fv, corners = bilinear_cell(image, x, border)
+    value, _, _ = lerp_cell(fu, fv, corners)
     return jnp.where(valid, value, jnp.zeros_like(value)), valid
 
 
-def bilinear_many(image, xs: Float[Array, "N 2"], border: float = 0.0):
-    return jax.vmap(lambda x: bilinear(image, x, border))(xs)
+def bilinear_with_gradient(image: Float[Array, "H W"], x: Float[Array, "2"]):
+    """Bilinear sample, its exact spatial derivative (the derivative of the interpolant), validity."""
+    valid, fu, fv, (i00, i01, i10, i11) = bilinear_cell(image, x)
+    value, top, bottom = lerp_cell(fu, fv, (i00, i01, i10, i11))
+    du = (1 - fv) * (i01 - i00) + fv * (i11 - i10)
+    dv = bottom - top
+    zero = jnp.zeros_like(value)
+    return jnp.where(valid, value, zero), jnp.where(valid, jnp.stack([du, dv]), jnp.zeros(2, value.dtype)), valid
+
+
+def bilinear_wrapped(image: Float[Array, "S S"], u, v):
+    """Bilinear sample of a periodic (tiling) image at (u, v), any real coordinates; vectorised."""
+    s = image.shape[0]
+    u, v = jnp.mod(u, s), jnp.mod(v, s)
+    fu0, fv0 = jnp.floor(u), jnp.floor(v)
+    u0, v0 = fu0.astype(jnp.int32), fv0.astype(jnp.int32)
+    fu, fv = u - fu0, v - fv0
+    u1, v1 = (u0 + 1) % s, (v0 + 1) % s
+    u0, v0 = u0 % s, v0 % s
+    return lerp_cell(fu, fv, (image[v0, u0], image[v0, u1], image[v1, u0], image[v1, u1]))[0]
 
 
 def downsample(image: Float[Array, "H W"]) -> Float[Array, "h w"]:
@@ -55,17 +82,21 @@ def downsample(image: Float[Array, "H W"]) -> Float[Array, "h w"]:
     return 0.25 * (im[0::2, 0::2] + im[1::2, 0::2] + im[0::2, 1::2] + im[1::2, 1::2])
 
 
-def pyramid(image, levels: int) -> list:
-    out = [jnp.asarray(image)]
+def pyramid(image: Float[Array, "H W"] | Float[np.ndarray, "H W"], levels: int) -> list:
+    """``levels`` images, each the 2x2 box average of the one before (level 0 = ``image``)."""
+    out = [jnp.asarray(image, jnp.float32)]
     for _ in range(levels - 1):
         out.append(downsample(out[-1]))
     return out
 
 
-def gradient_magnitude(image: Float[Array, "H W"]) -> Float[Array, "H W"]:
-    """Central-difference gradient magnitude (zero on the one-pixel border)."""
-    gx = jnp.zeros_like(image).at[:, 1:-1].set(0.5 * (image[:, 2:] - image[:, :-2]))
-    gy = jnp.zeros_like(image).at[1:-1, :].set(0.5 * (image[2:, :] - image[:-2, :]))
-    return jnp.sqrt(gx * gx + gy * gy)
+def linearize(image, gamma: float) -> np.ndarray:
+    """Photometric calibration by an inverse gamma response: display I -> radiance clip(I, 0, 1)^γ."""
+    image = np.clip(np.asarray(image, np.float32), 0.0, 1.0)
+    return image if gamma == 1.0 else image ** np.float32(gamma)
 
 
+def delinearize(radiance, gamma: float) -> np.ndarray:
+    """The camera response: radiance -> display intensity r^(1/γ)."""
+    radiance = np.asarray(radiance, np.float32)
+    return radiance if gamma == 1.0 else radiance ** np.float32(1.0 / gamma)

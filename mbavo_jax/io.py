@@ -26,10 +26,12 @@ __all__ = [
     "read_depth_png",
     "read_file_list",
     "check_unit_quaternions",
+    "check_stamps",
+    "read_table",
 ]
 
 
-def _rows(path: pathlib.Path, ncols: int | tuple[int, ...], what: str):
+def read_table(path, ncols: int | tuple[int, ...], what: str):
     """Yield (line_number, float columns) of a whitespace/comma table, skipping '#' comments."""
     path = pathlib.Path(path)
     if not path.is_file():
@@ -63,25 +65,32 @@ def check_unit_quaternions(path, q: np.ndarray, lines, tol: float = 1e-3) -> np.
     return q / norms[:, None]
 
 
-def _check_stamps(path, stamps: np.ndarray, lines) -> None:
+def check_stamps(path, stamps: np.ndarray, lines=None) -> np.ndarray:
+    """``stamps`` if they strictly increase; else a DataError naming the file and the line (``lines[i]``
+    is the line of ``stamps[i]``) of the first duplicate or decreasing one."""
     d = np.diff(stamps)
     bad = np.nonzero(d <= 0)[0]
     if bad.size:
         i = int(bad[0]) + 1
         kind = "duplicate" if d[i - 1] == 0 else "decreasing"
-        raise DataError(path, f"{kind} timestamp {stamps[i]!r} (timestamps must increase)", lines[i])
+        raise DataError(path, f"{kind} timestamp {stamps[i]!r} (timestamps must increase)", None if lines is None else lines[i])
+    return stamps
+
+
+def _stamped_rows(path, ncols: int, what: str, empty: str) -> tuple[np.ndarray, list]:
+    """(rows (N, ncols), their line numbers) of a table whose first column are increasing stamps."""
+    table = list(read_table(path, ncols, what))
+    if not table:
+        raise DataError(path, empty)
+    lines = [k for k, _ in table]
+    arr = np.asarray([vals for _, vals in table], dtype=np.float64)
+    check_stamps(path, arr[:, 0], lines)
+    return arr, lines
 
 
 def read_tum_trajectory(path) -> tuple[np.ndarray, np.ndarray]:
     """Read ``timestamp tx ty tz qx qy qz qw`` lines. Returns (stamps (N,), poses (N, 7) [t, q])."""
-    lines, rows = [], []
-    for k, vals in _rows(path, 8, "trajectory file"):
-        lines.append(k)
-        rows.append(vals)
-    if not rows:
-        raise DataError(path, "trajectory file has no poses")
-    arr = np.asarray(rows, dtype=np.float64)
-    _check_stamps(path, arr[:, 0], lines)
+    arr, lines = _stamped_rows(path, 8, "trajectory file", "trajectory file has no poses")
     q = check_unit_quaternions(path, arr[:, 4:8], lines)
     return arr[:, 0], np.concatenate([arr[:, 1:4], q], axis=1)
 
@@ -134,14 +143,7 @@ def read_exposure_file(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
     Returns (stamps, start (N, 7), end (N, 7)), camera-to-world poses.
     """
-    lines, rows = [], []
-    for k, vals in _rows(path, 15, "exposure file"):
-        lines.append(k)
-        rows.append(vals)
-    if not rows:
-        raise DataError(path, "exposure file has no rows")
-    arr = np.asarray(rows)
-    _check_stamps(path, arr[:, 0], lines)
+    arr, lines = _stamped_rows(path, 15, "exposure file", "exposure file has no rows")
     q0 = check_unit_quaternions(path, arr[:, 4:8], lines)
     q1 = check_unit_quaternions(path, arr[:, 11:15], lines)
     return arr[:, 0], np.concatenate([arr[:, 1:4], q0], 1), np.concatenate([arr[:, 8:11], q1], 1)
@@ -270,5 +272,5 @@ def read_file_list(path, what: str = "file list") -> list[tuple[int, float, str]
     if not out:
         raise DataError(path, f"{what} is empty")
     stamps = np.array([s for _, s, _ in out])
-    _check_stamps(path, stamps, [k for k, _, _ in out])
+    check_stamps(path, stamps, [k for k, _, _ in out])
     return out

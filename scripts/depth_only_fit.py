@@ -16,10 +16,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mbavo_jax.config import TrackerConfig, calibration_of
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.geometry.pose import Pose
-from mbavo_jax.odometry import sequence_calibration
-from mbavo_jax.tracking import TrackerConfig
 from mbavo_jax.tracking.geometric import depth_residuals, select_depth_points
 from mbavo_jax.tracking.points import downsample_depth
 
@@ -32,7 +31,7 @@ def main() -> int:
     ap.add_argument("--levels", type=int, default=4)
     args = ap.parse_args()
     seq = open_sequence(args.sequence)
-    cfg = TrackerConfig(**sequence_calibration(seq))
+    cfg = TrackerConfig(**calibration_of(seq.meta))
     ts, P = seq.groundtruth
 
     def T(i):

@@ -14,23 +14,23 @@ import argparse
 import jax.numpy as jnp
 import numpy as np
 
+from mbavo_jax.config import calibration_of, load_config
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.geometry.pose import Pose
 from mbavo_jax.geometry.trajectory import ExposureTrajectory
 from mbavo_jax.io import read_image_gray
-from mbavo_jax.odometry import sequence_calibration
-from mbavo_jax.tracking import Keyframe, TrackerConfig, track
+from mbavo_jax.tracking import Keyframe, track
 
 PERTURBATION = np.array([0.002, -0.001, 0.001, 0.003, -0.002, 0.002], np.float32)  # [rad x3, m x3]
 
 
-def parse(spec: str) -> dict:
-    out = {}
+def tracker_config(spec: str, seq):
+    """One run's tracker settings: comma-separated key=value (tuples as a:b) over the sequence's calibration."""
+    overrides = []
     for item in filter(None, spec.split(",")):
-        key, value = item.split("=")
-        kind = type(getattr(TrackerConfig(), key))
-        out[key] = tuple(float(x) if "." in x or "e" in x else int(x) for x in value.split(":")) if kind is tuple else kind(float(value))
-    return out
+        key, value = item.split("=", 1)
+        overrides.append(f"tracker.{key}=" + (f"[{value.replace(':', ',')}]" if ":" in value else value))
+    return load_config(overrides=overrides, calibration=calibration_of(seq.meta)).tracker
 
 
 def main() -> int:
@@ -58,7 +58,7 @@ def main() -> int:
         return 1000 * float(jnp.linalg.norm(a.t - b.t))
 
     for spec in args.set or [""]:
-        cfg = TrackerConfig(**{**sequence_calibration(seq), **parse(spec)})
+        cfg = tracker_config(spec, seq)
         kf = Keyframe.create(sharp, seq[args.kf].depth, seq.camera, cfg)
         traj, status, diag = track(kf, frame.image, init, cfg, depth=frame.depth)
         levels = " ".join(f"L{p['level']}:{p['steps']}{'c' if p['converged'] else 'x'}:{p['rms']:.3f}" for p in diag["levels"])

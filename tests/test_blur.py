@@ -106,3 +106,25 @@ def test_gradient_wrt_trajectory_is_finite_and_nonzero(scene):
 
     g = jax.grad(loss)(jnp.zeros(12, jnp.float32))
     assert np.all(np.isfinite(g)) and float(jnp.linalg.norm(g)) > 0
+
+
+def test_tracker_residuals_use_the_one_blur_model(scene):
+    """The tracker's synthesised intensities (its residuals plus the observed pixels, without the
+    affine brightness) equal ``reblur`` at the same trajectory: one image-formation model, float64."""
+    from mbavo_jax.tracking.residuals import LevelProblem, residuals_and_jacobian
+
+    with jax.enable_x64(True):
+        to64 = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), t)
+        img, cam, _, anchor = to64(scene)
+        px = to64(_pixels(cam, margin=6))
+        d = jnp.linspace(1.5, 3.0, px.shape[0])
+        observed = jnp.asarray(np.random.default_rng(1).uniform(size=px.shape[0]))
+        rays = jax.vmap(cam.unit_ray)(px)
+        n = 16
+        problem = LevelProblem(img, cam, anchor, rays, d, observed, jnp.ones(px.shape[0], bool), n, "analytic")
+        y = jnp.concatenate([jnp.asarray(np.random.default_rng(2).normal(scale=0.01, size=12)), jnp.array([0.1, 0.02])])
+        r, _, valid = residuals_and_jacobian(y, problem, with_jacobian=False)
+        tracker_synth = (r - y[13] + observed) / jnp.exp(y[12])
+        model, model_ok = reblur(img, cam, anchor.plus(y[:12]), px, d, n=n)
+        assert bool(jnp.all(valid == model_ok)) and int(valid.sum()) > 0.9 * px.shape[0]
+        np.testing.assert_allclose(np.asarray(tracker_synth)[np.asarray(valid)], np.asarray(model)[np.asarray(valid)], rtol=0, atol=1e-10)

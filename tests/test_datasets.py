@@ -1,13 +1,11 @@
 """Loaders (TUM, KITTI, EuRoC, DSO, image folder) on real and hand-made sequences, and bad input:
-each bad file gives a one-line error naming the file, exit status 1, never a traceback."""
+each bad file gives a one-line error naming the file, exit status 1, never a traceback (``mbavo``
+runs in-process: the ``mbavo`` fixture of conftest.py)."""
 
 from __future__ import annotations
 
 import json
 import pathlib
-import shutil
-import subprocess
-import sys
 
 import cv2
 import numpy as np
@@ -16,33 +14,7 @@ import pytest
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.errors import DataError
 
-from .conftest import shared_dataset
-
-W, H = 32, 24
-
-
-def mbavo(*args):
-    return subprocess.run([sys.executable, "-m", "mbavo_jax.cli", *map(str, args)], capture_output=True, text=True)
-
-
-def make_tum(root: pathlib.Path, n=4, depth=True) -> pathlib.Path:
-    rng = np.random.default_rng(0)
-    (root / "rgb").mkdir(parents=True)
-    (root / "depth").mkdir()
-    stamps = 10.0 + np.arange(n) / 30
-    with open(root / "rgb.txt", "w") as f, open(root / "depth.txt", "w") as g:
-        for t in stamps:
-            cv2.imwrite(str(root / "rgb" / f"{t:.6f}.png"), rng.integers(0, 255, (H, W, 3), dtype=np.uint8))
-            cv2.imwrite(str(root / "depth" / f"{t:.6f}.png"), np.full((H, W), 10000, np.uint16))
-            f.write(f"{t:.6f} rgb/{t:.6f}.png\n")
-            g.write(f"{t + 0.002:.6f} depth/{t:.6f}.png\n")
-    if not depth:
-        (root / "depth.txt").unlink()
-    (root / "camera.yaml").write_text(f"fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\nwidth: {W}\nheight: {H}\n")
-    with open(root / "groundtruth.txt", "w") as f:
-        for t in stamps:
-            f.write(f"{t:.6f} 0 0 {t - 10:.4f} 0 0 0 1\n")
-    return root
+from .conftest import H, W, depth_of, make_tum, shared_dataset, write_depth
 
 
 def test_tum_real_clip():
@@ -77,9 +49,56 @@ def test_loading_is_lazy(tmp_path, monkeypatch):
 
 
 def test_tum_association_and_exposure(tmp_path):
-    root = make_tum(tmp_path / "seq")
+    """Each rgb frame gets the depth image nearest in time (within 20 ms), whatever the order and
+    count of depth.txt's entries; exposure times come from times.txt, else camera.yaml's exposure_ms."""
+    root = make_tum(tmp_path / "seq", n=6)
+    rgb_stamps = 10.0 + np.arange(6) / 30
+    # Depth stamps jittered by up to 9 ms around their rgb frame, plus decoys holding other depths: one
+    # before the first frame (a pairing by position would be off by one), one 11 ms after frame 1
+    # whose true partner is 7 ms before it, one 12 ms before frame 4 whose partner is 6 ms after it,
+    # and one 13 ms after frame 2 (its partner: 9 ms after). Every decoy is within the 20 ms window.
+    jitter = [0.002, -0.007, 0.009, -0.004, 0.006, -0.001]
+    entries = [(rgb_stamps[k] + jitter[k], f"depth/true{k}.png", depth_of(k)) for k in range(6)]
+    decoys = [(rgb_stamps[0] - 0.030, 9.0), (rgb_stamps[1] + 0.011, 9.25), (rgb_stamps[4] - 0.012, 9.5), (rgb_stamps[2] + 0.013, 9.75)]
+    entries += [(t, f"depth/decoy{i}.png", d) for i, (t, d) in enumerate(decoys)]
+    entries.sort()
+    for _, name, metres in entries:
+        write_depth(root / name, metres)
+    (root / "depth.txt").write_text("# timestamp filename\n" + "".join(f"{t:.6f} {name}\n" for t, name, _ in entries))
+
     seq = open_sequence(root)
-    assert seq.has_depth and seq[2].depth[0, 0] == pytest.approx(2.0)
+    assert seq.has_depth and len(seq) == 6
+    assert seq.exposures is None and seq[0].exposure is None  # neither times.txt nor exposure_ms
+    for k in range(6):
+        f = seq[k]
+        assert f.timestamp == pytest.approx(rgb_stamps[k]) and pathlib.Path(f.path).name == f"{rgb_stamps[k]:.6f}.png"
+        assert f.depth.shape == (H, W)
+        np.testing.assert_allclose(f.depth, depth_of(k), rtol=0, atol=1e-6, err_msg=f"frame {k} got the wrong depth image")
+
+    # an rgb frame with no depth within 20 ms is an error naming depth.txt when it is loaded
+    last = rgb_stamps[-1] + 0.1
+    cv2.imwrite(str(root / "rgb" / "late.png"), np.zeros((H, W), np.uint8))
+    with open(root / "rgb.txt", "a") as fh:
+        fh.write(f"{last:.6f} rgb/late.png\n")
+    seq = open_sequence(root)
+    np.testing.assert_allclose(seq[5].depth, depth_of(5), atol=1e-6)
+    with pytest.raises(DataError, match="depth.txt"):
+        seq[6]
+    (root / "rgb.txt").write_text("".join(f"{t:.6f} rgb/{t:.6f}.png\n" for t in rgb_stamps))
+
+    # a constant exposure time from camera.yaml (milliseconds)
+    cam = (root / "camera.yaml").read_text()
+    (root / "camera.yaml").write_text(cam + "exposure_ms: 12.5\n")
+    seq = open_sequence(root)
+    np.testing.assert_allclose(seq.exposures, np.full(6, 0.0125))
+    assert [seq[k].exposure for k in range(6)] == pytest.approx([0.0125] * 6)
+    # per-frame exposure times from times.txt (DSO style: id timestamp exposure_ms) win over camera.yaml's
+    exposure_ms = [8.0, 9.5, 11.0, 12.5, 14.0, 15.5]
+    (root / "times.txt").write_text("".join(f"{k} {t:.6f} {e}\n" for k, (t, e) in enumerate(zip(rgb_stamps, exposure_ms))))
+    seq = open_sequence(root)
+    np.testing.assert_allclose(seq.exposures, np.array(exposure_ms) / 1000)
+    assert [seq[k].exposure for k in range(6)] == pytest.approx([e / 1000 for e in exposure_ms])
+    np.testing.assert_allclose(seq[3].depth, depth_of(3), atol=1e-6)  # still paired by time
 
 
 def test_dso_folder(tmp_path):
@@ -181,7 +200,7 @@ def _corrupt(root: pathlib.Path, what: str):
     ["missing_image", "tum_columns", "unsorted", "duplicate", "depth_size", "depth_dtype", "corrupt_png",
      "camera_negative", "camera_missing_key", "camera_depth_sigma", "quaternion"],
 )
-def test_bad_input_is_one_line_error(tmp_path, what):
+def test_bad_input_is_one_line_error(tmp_path, what, mbavo):
     root = make_tum(tmp_path / "seq")
     where = _corrupt(root, what)
     r = mbavo("info", root, "--check")
@@ -191,7 +210,7 @@ def test_bad_input_is_one_line_error(tmp_path, what):
     assert len(lines) == 1 and lines[0].startswith("mbavo: error: ") and where in lines[0], r.stderr
 
 
-def test_missing_sequence_and_no_overlap(tmp_path):
+def test_missing_sequence_and_no_overlap(tmp_path, mbavo):
     r = mbavo("info", tmp_path / "nope")
     assert r.returncode == 1 and "not found" in r.stderr and "Traceback" not in r.stderr
     a, b = tmp_path / "a.txt", tmp_path / "b.txt"
@@ -203,7 +222,7 @@ def test_missing_sequence_and_no_overlap(tmp_path):
     assert r.returncode == 1 and "missing.txt" in r.stderr and "not found" in r.stderr
 
 
-def test_image_size_change_mid_sequence(tmp_path):
+def test_image_size_change_mid_sequence(tmp_path, mbavo):
     root = make_tum(tmp_path / "seq", depth=False)
     p = sorted((root / "rgb").glob("*.png"))[2]
     cv2.imwrite(str(p), np.zeros((H + 2, W), np.uint8))

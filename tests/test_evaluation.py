@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -52,7 +51,7 @@ def test_transform_then_align_back_gives_zero_error():
     Ts = T @ pose_matrices(poses)
     from mbavo_jax.geometry.quaternion import from_matrix
 
-    moved = np.array([np.r_[M[:3, 3], np.asarray(from_matrix(M[:3, :3]))] for M in Ts])
+    moved = np.array([np.r_[M[:3, 3], np.asarray(from_matrix(jnp.asarray(M[:3, :3])))] for M in Ts])
     assert ape(stamps, poses, stamps, moved, "se3")["rmse"] < 1e-6
     assert rpe(stamps, poses, stamps, moved)["rmse"] < 1e-6
 
@@ -73,7 +72,7 @@ def _write_pair(tmp_path, seed=1, scale=1.0):
     est[:, :3] = est[:, :3] @ R.T + 1.0
     from mbavo_jax.geometry.quaternion import from_matrix
 
-    est[:, 3:] = [np.asarray(from_matrix(R @ pose_matrices(p[None])[0][:3, :3])) for p in est]
+    est[:, 3:] = [np.asarray(from_matrix(jnp.asarray(R @ pose_matrices(p[None])[0][:3, :3]))) for p in est]
     ref_path, est_path = tmp_path / "ref.txt", tmp_path / "est.txt"
     write_tum_trajectory(ref_path, stamps, poses)
     write_tum_trajectory(est_path, stamps + 0.003, est)
@@ -81,15 +80,13 @@ def _write_pair(tmp_path, seed=1, scale=1.0):
 
 
 @pytest.mark.parametrize("align,scale", [("se3", 1.0), ("sim3", 0.5)])
-def test_ape_agrees_with_evo(tmp_path, align, scale):
+def test_ape_agrees_with_evo(tmp_path, align, scale, mbavo):
     from evo.core import metrics, sync
     from evo.tools import file_interface
 
     ref_path, est_path = _write_pair(tmp_path, scale=scale)
-    out = subprocess.run(
-        [sys.executable, "-m", "mbavo_jax.cli", "eval", "ape", ref_path, est_path, "--align", align, "--format", "json"],
-        capture_output=True, text=True, check=True,
-    )
+    out = mbavo("eval", "ape", ref_path, est_path, "--align", align, "--format", "json")
+    assert out.returncode == 0, out.stderr
     ours = json.loads(out.stdout)
     traj_ref = file_interface.read_tum_trajectory_file(str(ref_path))
     traj_est = file_interface.read_tum_trajectory_file(str(est_path))
@@ -103,15 +100,13 @@ def test_ape_agrees_with_evo(tmp_path, align, scale):
         assert abs(ours[k] - theirs[k]) < 1e-6, (k, ours[k], theirs[k])
 
 
-def test_rpe_agrees_with_evo(tmp_path):
+def test_rpe_agrees_with_evo(tmp_path, mbavo):
     from evo.core import metrics, sync
     from evo.tools import file_interface
 
     ref_path, est_path = _write_pair(tmp_path, seed=3)
-    out = subprocess.run(
-        [sys.executable, "-m", "mbavo_jax.cli", "eval", "rpe", ref_path, est_path, "--format", "json"],
-        capture_output=True, text=True, check=True,
-    )
+    out = mbavo("eval", "rpe", ref_path, est_path, "--format", "json")
+    assert out.returncode == 0, out.stderr
     ours = json.loads(out.stdout)
     traj_ref = file_interface.read_tum_trajectory_file(str(ref_path))
     traj_est = file_interface.read_tum_trajectory_file(str(est_path))
@@ -123,7 +118,7 @@ def test_rpe_agrees_with_evo(tmp_path):
         assert abs(ours[k] - theirs[k]) < 1e-6, (k, ours[k], theirs[k])
 
 
-def test_exposure_path_error(tmp_path):
+def test_exposure_path_error(tmp_path, mbavo):
     stamps, poses, rng = smooth_trajectory(10)
     poses[:, 3:] = [0, 0, 0, 1]  # unrotated cameras: a world-x shift is a camera-x shift
     starts, ends = poses.copy(), poses.copy()
@@ -138,20 +133,14 @@ def test_exposure_path_error(tmp_path):
     assert wrong["reprojection_px"]["mean"] == pytest.approx(2.5, abs=1e-6)
     write_exposure_file(tmp_path / "a.txt", stamps, starts, ends)
     (tmp_path / "cam.yaml").write_text("fx: 500\nfy: 500\ncx: 320\ncy: 240\nwidth: 640\nheight: 480\n")
-    out = subprocess.run(
-        [sys.executable, "-m", "mbavo_jax.cli", "eval", "exposure", tmp_path / "a.txt", tmp_path / "a.txt",
-         "--camera", tmp_path / "cam.yaml", "--format", "json"],
-        capture_output=True, text=True, check=True,
-    )
+    out = mbavo("eval", "exposure", tmp_path / "a.txt", tmp_path / "a.txt", "--camera", tmp_path / "cam.yaml", "--format", "json")
+    assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout)["reprojection_px"]["max"] < 1e-9
 
 
-def test_plots_are_written(tmp_path):
+def test_plots_are_written(tmp_path, mbavo):
     ref_path, est_path = _write_pair(tmp_path)
-    subprocess.run(
-        [sys.executable, "-m", "mbavo_jax.cli", "eval", "ape", ref_path, est_path, "--plot", tmp_path / "plots"],
-        capture_output=True, text=True, check=True,
-    )
+    assert mbavo("eval", "ape", ref_path, est_path, "--plot", tmp_path / "plots").returncode == 0
     for name in ("trajectory.png", "ape_over_time.png"):
         data = (tmp_path / "plots" / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000

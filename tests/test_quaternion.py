@@ -50,7 +50,7 @@ def test_product_matches_matrix_product(x64, rng):
         a, b = (rng.normal(size=4) for _ in range(2))
         a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
         ab = quat.product(jnp.asarray(a), jnp.asarray(b))
-        np.testing.assert_allclose(quat.to_matrix(ab), quat.to_matrix(a) @ quat.to_matrix(b), atol=1e-12)
+        np.testing.assert_allclose(quat.to_matrix(ab), quat.to_matrix(jnp.asarray(a)) @ quat.to_matrix(jnp.asarray(b)), atol=1e-12)
         np.testing.assert_allclose(quat.Q_hat(jnp.asarray(b)) @ a, ab, atol=1e-12)  # Eq. 36
 
 

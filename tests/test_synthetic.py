@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import hashlib
 import pathlib
-import subprocess
-import sys
 
 import jax.numpy as jnp
 import numpy as np
@@ -17,20 +15,22 @@ from mbavo_jax.datasets import open_sequence
 from mbavo_jax.geometry import ExposureTrajectory, Pose
 from mbavo_jax.io import read_image_gray
 
-from .conftest import shared_dataset
+from .conftest import run_cli, shared_dataset
 
 
-def mbavo(*args, check=True):
-    return subprocess.run([sys.executable, "-m", "mbavo_jax.cli", *map(str, args)], capture_output=True, text=True, check=check)
+def synth(*args):
+    """``mbavo synth ARGS -q`` in-process; it must succeed."""
+    assert run_cli("synth", *args, "-q") == 0
 
 
 @pytest.fixture(scope="module")
 def strong_small(tmp_path_factory):
     out = tmp_path_factory.mktemp("synth") / "strong"
-    mbavo("synth", "--preset", "strong", "--frames", 20, "--width", 160, "--height", 120, "--seed", 1, "--out", out, "-q")
+    synth("--preset", "strong", "--frames", 20, "--width", 160, "--height", 120, "--seed", 1, "--out", out)
     return out
 
 
+@pytest.mark.slow
 def test_layout(strong_small):
     d = strong_small
     for name in ("rgb.txt", "depth.txt", "groundtruth.txt", "exposure.txt", "times.txt", "camera.yaml", "synth.yaml"):
@@ -51,7 +51,7 @@ def test_deterministic_for_a_seed(tmp_path):
     digests = []
     for k in range(2):
         out = tmp_path / f"run{k}"
-        mbavo("synth", "--preset", "mild", "--frames", 3, "--width", 64, "--height", 48, "--subframes", 4, "--seed", 5, "--out", out, "-q")
+        synth("--preset", "mild", "--frames", 3, "--width", 64, "--height", 48, "--subframes", 4, "--seed", 5, "--out", out)
         h = hashlib.sha256()
         for p in sorted(out.rglob("*")):
             if p.is_file() and p.name != "synth.yaml":
@@ -60,6 +60,7 @@ def test_deterministic_for_a_seed(tmp_path):
     assert digests[0] == digests[1]
 
 
+@pytest.mark.slow
 def test_reblurring_sharp_frames_reproduces_blurry_frames(strong_small):
     """The generator (ray-cast sub-frames) and the blur model (plane transfer) agree."""
     seq = open_sequence(strong_small)
@@ -84,11 +85,11 @@ def test_reblurring_sharp_frames_reproduces_blurry_frames(strong_small):
         assert np.mean(err) < 0.75 * np.mean(base), (np.mean(err), np.mean(base))
 
 
+@pytest.mark.slow
 def test_blurring_a_real_clip(tmp_path):
     src = shared_dataset("tum_fr1_xyz_head37")
     out = tmp_path / "tumblur"
-    r = mbavo("synth", "--from", src, "--blur-px", 12, "--out", out, "-q")
-    assert r.returncode == 0
+    synth("--from", src, "--blur-px", 12, "--out", out)
     info = yaml.safe_load((out / "synth.yaml").read_text())
     assert info["frames"] == 37 and abs(info["mean_blur_px"] - 12) < 1.5
     seq = open_sequence(out)
@@ -124,7 +125,7 @@ def test_sensor_depth_model():
 
 def test_depth_model_recorded_in_camera_yaml(tmp_path):
     out = tmp_path / "s"
-    mbavo("synth", "--preset", "mild", "--frames", 2, "--width", 64, "--height", 48, "--out", out, "-q", "--no-real-textures", "--depth-model", "sensor")
+    synth("--preset", "mild", "--frames", 2, "--width", 64, "--height", 48, "--out", out, "--no-real-textures", "--depth-model", "sensor")
     seq = open_sequence(out)
     assert seq.meta["depth_sigma"] == [0.0012, 0.0019]
     assert (seq[0].depth == 0).any() or np.isnan(seq[0].depth).any()  # holes

@@ -1,7 +1,8 @@
 """The blur-aware tracker: Jacobian paths, accuracy vs the blur-unaware tracker, status, shapes.
 
 Runs at 160x120 so the suite stays fast on 2 cores; the 640x480 accuracy and speed numbers come
-from ``scripts/bench_tracking.py`` (docs/benchmarks.md)."""
+from ``scripts/bench_tracking.py`` (docs/benchmarks.md). Tests that generate a sequence or track a
+frame are marked slow (``pytest -m "not slow"`` leaves them out)."""
 
 from __future__ import annotations
 
@@ -17,8 +18,9 @@ from mbavo_jax.geometry import ExposureTrajectory, Pose
 from mbavo_jax.io import read_image_gray
 from mbavo_jax.synthetic import SynthConfig, generate_sequence
 from mbavo_jax.synthetic.generator import PRESETS
-from mbavo_jax.tracking import Keyframe, Status, TrackerConfig, choose_n, constant_velocity_guess, exposure_from_velocity, track
-from mbavo_jax.tracking import tracker as tracker_mod
+from mbavo_jax.config import TrackerConfig
+from mbavo_jax.tracking import Keyframe, Status, choose_n, compiled_programs, constant_velocity_guess, exposure_from_velocity, track
+from mbavo_jax.tracking.level import residual_pixels
 from mbavo_jax.tracking.residuals import LevelProblem, make_residual_fn, residuals_and_jacobian
 
 SMALL = TrackerConfig(levels=3, points=(192, 128, 64), cell=(10, 7, 5), response_gamma=2.2, max_steps=(10, 12, 20))
@@ -27,7 +29,7 @@ SMALL = TrackerConfig(levels=3, points=(192, 128, 64), cell=(10, 7, 5), response
 def _sequence(tmp_path_factory, preset, frames=7):
     out = tmp_path_factory.mktemp(preset)
     cfg = SynthConfig(**{**PRESETS[preset], "frames": frames, "width": 160, "height": 120, "subframes": min(32, PRESETS[preset].get("subframes", 32)), "seed": 3, "real_textures": False})
-    generate_sequence(cfg, out, progress=None)
+    generate_sequence(cfg, out, progress=False)
     return open_sequence(out)
 
 
@@ -73,13 +75,14 @@ def _problem(seq, jacobian, n=8, dtype=jnp.float32):
     kf, frame, init, _ = case(seq, 2, SMALL)
     pts = kf.points[0]
     cam = kf.cameras[0]
-    rays, d, obs, mask = tracker_mod._level_setup(
+    rays, d, obs, mask = residual_pixels(
         cam, jnp.asarray(frame ** 2.2), jnp.asarray(pts.pixels), jnp.asarray(pts.depths), jnp.asarray(pts.valid), init
     )
     cast = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, t)
     return LevelProblem(cast(kf.images[0]), cast(cam), cast(init).normalized(), cast(rays), cast(d), cast(obs), mask, n, jacobian)
 
 
+@pytest.mark.slow
 def test_structured_jacobians_match_plain_autodiff(strong):
     """Both structured paths (per-virtual-pose rows chained through the trajectory Jacobian) equal
     jax.jacfwd of the whole residual, in float64, away from y = 0 too."""
@@ -100,6 +103,7 @@ def test_structured_jacobians_match_plain_autodiff(strong):
             np.testing.assert_allclose(J, ref, atol=1e-8, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_blur_aware_beats_blur_unaware_on_strong_blur(strong):
     errs = {"n64": [], "n1": []}
     for k in (1, 3, 5):
@@ -113,6 +117,7 @@ def test_blur_aware_beats_blur_unaware_on_strong_blur(strong):
     assert med1 > 4 * med64, errs
 
 
+@pytest.mark.slow
 def test_sharp_frames_n64_no_worse_than_n1(sharp_seq):
     for k in (2, 4):
         e = {}
@@ -124,6 +129,7 @@ def test_sharp_frames_n64_no_worse_than_n1(sharp_seq):
         assert e["n64"] <= e["n1"] * 1.2 + 0.05, e
 
 
+@pytest.mark.slow
 def test_analytic_and_autodiff_paths_give_the_same_track(strong):
     out = []
     for jac in ("analytic", "autodiff"):
@@ -134,6 +140,7 @@ def test_analytic_and_autodiff_paths_give_the_same_track(strong):
     np.testing.assert_allclose(out[0], out[1], atol=2e-4)
 
 
+@pytest.mark.slow
 def test_adaptive_n(strong, sharp_seq):
     assert choose_n(0.2, TrackerConfig()) == 2 and choose_n(5.0, TrackerConfig()) == 16 and choose_n(500, TrackerConfig()) == 64
     cfg = dataclasses.replace(SMALL, n_mode="adaptive")
@@ -148,6 +155,7 @@ def test_adaptive_n(strong, sharp_seq):
     assert e["adaptive"] <= e["fixed"] + 0.1, e
 
 
+@pytest.mark.slow
 def test_status_never_raises(strong):
     kf, frame, init, gt = case(strong, 2, SMALL)
     black = track(kf, np.zeros_like(frame), init, SMALL)
@@ -155,13 +163,18 @@ def test_status_never_raises(strong):
     noise = track(kf, np.random.default_rng(0).uniform(size=frame.shape).astype(np.float32), init, SMALL)
     assert not noise.status.ok
     nan = frame.copy()
-    nan[10:40, 10:40] = np.nan
+    nan[10:40, 10:40] = np.nan  # a few percent of the frame without data: those pixels are left out
     r = track(kf, nan, init, SMALL)
-    assert np.all(np.isfinite(np.asarray(r.trajectory.start.t)))
+    assert np.all(np.isfinite(np.asarray(r.trajectory.start.t))) and np.all(np.isfinite(np.asarray(r.trajectory.end.q)))
+    assert r.status.ok and endpoint_error(kf, r.trajectory, gt) < 0.3, (r.status, endpoint_error(kf, r.trajectory, gt))
+    void = track(kf, np.full_like(frame, np.nan), init, SMALL)  # no data at all: the frame is dropped
+    assert void.status == Status.TOO_FEW_POINTS and not void.status.ok
+    assert np.all(np.isfinite(np.asarray(void.trajectory.start.t)))
     empty = Keyframe.create(np.zeros_like(frame), np.full(frame.shape, np.nan, np.float32), strong.camera, SMALL)
     assert track(empty, frame, init, SMALL).status == Status.TOO_FEW_POINTS
 
 
+@pytest.mark.slow
 def test_hypotheses_recover_from_a_bad_initial_guess(strong):
     kf, frame, _, gt = case(strong, 4, SMALL)
     bad_rot = Pose(jnp.asarray([0.0, np.sin(np.deg2rad(6)), 0.0, np.cos(np.deg2rad(6))], jnp.float32), jnp.zeros(3))
@@ -172,14 +185,22 @@ def test_hypotheses_recover_from_a_bad_initial_guess(strong):
     assert err < 1.0, (err, r.diagnostics)
 
 
+@pytest.mark.slow
 def test_no_recompilation_after_the_first_frame(strong):
+    """Fixed n: every frame of a sequence (new keyframes: new points, same shapes) runs the level
+    programs compiled for the first one; a different n compiles new ones (the counter counts)."""
     kf, frame, init, _ = case(strong, 1, SMALL)
     track(kf, frame, init, SMALL)
-    before = tracker_mod._solve_level._cache_size()
+    before = compiled_programs()
+    assert before >= 1
     for k in (2, 3, 4):
         kf, frame, init, _ = case(strong, k, SMALL)  # a new keyframe: new points, same shapes
         track(kf, frame, init, SMALL)
-    assert tracker_mod._solve_level._cache_size() == before
+    assert compiled_programs() == before
+    other_n = dataclasses.replace(SMALL, n=32)
+    kf, frame, init, _ = case(strong, 2, other_n)
+    track(kf, frame, init, other_n)
+    assert compiled_programs() > before
 
 
 # ------------------------------------------------------------------ optional depth term (RGB-D)
@@ -202,6 +223,7 @@ def test_depth_points_fixed_shape_skip_edges_and_holes():
     assert np.allclose(pts.depths[pts.valid], np.where(u[pts.valid] < 40, 2.0, 3.0))
 
 
+@pytest.mark.slow
 def test_depth_residuals_vanish_at_truth_and_have_finite_gradients(strong):
     from mbavo_jax.tracking.geometric import depth_residuals, select_depth_points
 
@@ -212,7 +234,7 @@ def test_depth_residuals_vanish_at_truth_and_have_finite_gradients(strong):
     cur[:40, :40] = 0.0  # a hole in the current depth map
     args = (cam, jnp.asarray(cur), jnp.asarray(dp.pixels), jnp.asarray(dp.depths), jnp.asarray(dp.valid), 0.02)
     r, ok = depth_residuals(gt.middle(), *args)
-    assert ok.sum() > 0.5 * dp.valid.sum() - 40
+    assert int(ok.sum()) > 0.5 * dp.valid.sum() - 40
     assert float(np.median(np.abs(np.asarray(r)[np.asarray(ok)]))) < 0.3  # in σ of the Kinect noise model
     moved = Pose(gt.middle().q, gt.middle().t + jnp.array([0.0, 0.0, 0.05]))
     r2, ok2 = depth_residuals(moved, *args)
@@ -221,6 +243,7 @@ def test_depth_residuals_vanish_at_truth_and_have_finite_gradients(strong):
     assert np.all(np.isfinite(np.asarray(grad))) and np.any(np.asarray(grad) != 0)
 
 
+@pytest.mark.slow
 def test_depth_residuals_drop_occluded_points(strong):
     """A foreground object in the current depth map hides keyframe points: their residuals are
     hundreds of σ; beyond ``outlier`` σ they are invalid instead of pulling the pose."""
@@ -239,6 +262,7 @@ def test_depth_residuals_drop_occluded_points(strong):
     assert np.array_equal(ok_cut, ok_all & ~hidden) and np.allclose(r_cut[ok_cut], r_all[ok_cut])
 
 
+@pytest.mark.slow
 def test_stiff_depth_term_with_an_occluder_still_lands(strong):
     """Exact depth weighted 100x the maximum-likelihood balance and an object in front of the
     scene: the mid pose must stay as good as the images-only estimate. Needs both guards: occluded
@@ -260,6 +284,7 @@ def test_stiff_depth_term_with_an_occluder_still_lands(strong):
     assert np.mean(err["stiff"]) < 0.5 * np.mean(err["unguarded"]), err
 
 
+@pytest.mark.slow
 def test_depth_term_off_changes_nothing_and_checks_shape(strong):
     kf, frame, init, _ = case(strong, 2, SMALL)
     a = track(kf, frame, init, SMALL)
@@ -270,6 +295,7 @@ def test_depth_term_off_changes_nothing_and_checks_shape(strong):
         track(kf, frame, init, dataclasses.replace(SMALL, depth_weight=1.0), depth=np.ones((10, 10), np.float32))
 
 
+@pytest.mark.slow
 def test_exposure_from_velocity_matches_the_generated_exposure(strong):
     """The exposure path of a frame about its own mid pose, from the motion to the next frame
     (constant velocity: how the first keyframe gets its path), against the generator's path."""
@@ -288,6 +314,7 @@ def test_exposure_from_velocity_matches_the_generated_exposure(strong):
         assert blur > 2.0 and endpoint_error(kf, est, gt) < 0.1 * blur, (k, blur, endpoint_error(kf, est, gt))
 
 
+@pytest.mark.slow
 def test_depth_term_pins_the_mid_pose(strong):
     """With the frame's exact depth (σ = 0.5 mm) the mid-exposure translation error drops well below
     the images-only estimate (both n = 64), while the blur (endpoint error) stays as good."""

@@ -70,14 +70,3 @@ class Sequence:
     def __iter__(self):
         for i in range(len(self)):
             yield self[i]
-
-    def exposure_of(self, i: int) -> float | None:
-        return None if self.exposures is None else float(self.exposures[i])
-
-
-def sorted_stamps_or_error(path, stamps: np.ndarray) -> np.ndarray:
-    d = np.diff(stamps)
-    if np.any(d <= 0):
-        i = int(np.nonzero(d <= 0)[0][0]) + 1
-        raise DataError(path, f"timestamps must increase; entry {i} ({stamps[i]}) does not")
-    return stamps

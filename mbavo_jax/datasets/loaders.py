@@ -5,20 +5,24 @@ from __future__ import annotations
 import pathlib
 import re
 
+import jax.numpy as jnp
 import numpy as np
 import yaml
 
 from ..errors import DataError
+from ..evaluation.associate import associate
 from ..geometry.camera import PinholeCamera
 from ..io import (
+    check_stamps,
     read_camera_yaml,
     read_depth_png,
     read_exposure_file,
     read_file_list,
     read_image_gray,
+    read_table,
     read_tum_trajectory,
 )
-from .base import Frame, Sequence, sorted_stamps_or_error
+from .base import Frame, Sequence
 
 __all__ = ["open_sequence", "open_tum", "open_kitti", "open_euroc", "open_dso", "open_image_folder"]
 
@@ -33,20 +37,6 @@ IMAGE_EXT = (".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
 
 def _camera_from_dict(d: dict) -> PinholeCamera:
     return PinholeCamera.create(d["fx"], d["fy"], d["cx"], d["cy"], d["width"], d["height"])
-
-
-def _associate(stamps_a, stamps_b, max_diff):
-    """For each stamp in a, the index of the nearest stamp in b within max_diff, or -1."""
-    idx = np.searchsorted(stamps_b, stamps_a)
-    best = np.full(len(stamps_a), -1)
-    for k, (t, j) in enumerate(zip(stamps_a, idx)):
-        cands = [c for c in (j - 1, j) if 0 <= c < len(stamps_b)]
-        if not cands:
-            continue
-        c = min(cands, key=lambda c: abs(stamps_b[c] - t))
-        if abs(stamps_b[c] - t) <= max_diff:
-            best[k] = c
-    return best
 
 
 def _first_image_size(path) -> tuple[int, int]:
@@ -79,8 +69,10 @@ def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02) 
     if (root / "depth.txt").is_file():
         dl = read_file_list(root / "depth.txt", "depth list")
         dstamps = np.array([s for _, s, _ in dl])
-        match = _associate(stamps, dstamps, max_diff)
-        depth_names = [dl[m][2] if m >= 0 else None for m in match]
+        i_rgb, i_depth = associate(stamps, dstamps, max_diff)
+        depth_names = [None] * len(stamps)
+        for i, j in zip(i_rgb, i_depth):
+            depth_names[i] = dl[j][2]
     exposures = None
     if (root / "times.txt").is_file():
         exposures = _dso_times(root / "times.txt", len(stamps))[1]
@@ -134,7 +126,7 @@ def _kitti_poses(path) -> np.ndarray:
             if len(vals) != 12:
                 raise DataError(path, f"expected 12 numbers (3x4 pose), found {len(vals)}", k)
             T = np.array([float(v) for v in vals]).reshape(3, 4)
-            q = np.asarray(from_matrix(T[:, :3]))
+            q = np.asarray(from_matrix(jnp.asarray(T[:, :3])))
             rows.append(np.concatenate([T[:, 3], q]))
     return np.array(rows)
 
@@ -146,14 +138,15 @@ def open_kitti(path) -> Sequence:
     times = root / "times.txt"
     if not times.is_file():
         raise DataError(times, "times.txt not found")
-    stamps = np.array([v[0] for _, v in _table(times, (1,))])
+    rows = list(read_table(times, (1,), times.name))
+    stamps, lines = np.array([v[0] for _, v in rows]), [k for k, _ in rows]
     if (root / "image_0").is_dir():
         files = sorted(p for p in (root / "image_0").iterdir() if p.suffix.lower() in IMAGE_EXT)
     else:
         files = [root / n for _, _, n in read_file_list(root / "rgb.txt", "rgb list")]
     if len(files) > len(stamps):
         raise DataError(times, f"{len(stamps)} timestamps but {len(files)} images")
-    stamps = sorted_stamps_or_error(times, stamps[: len(files)])  # a clip may list the full sequence's times
+    stamps = check_stamps(times, stamps[: len(files)], lines)  # a clip may list the full sequence's times
     camera = _kitti_camera(root / "calib.txt", files[0])
     gt = None
     if (root / "groundtruth.txt").is_file():
@@ -167,12 +160,6 @@ def open_kitti(path) -> Sequence:
     return Sequence(root.name, root, camera, stamps, load, None, gt, None, False, "kitti")
 
 
-def _table(path, ncols):
-    from ..io import _rows
-
-    return _rows(path, ncols, path.name)
-
-
 def open_euroc(path) -> Sequence:
     """EuRoC MAV: ``mav0/cam0/data.csv`` (ns stamps), ``mav0/cam0/sensor.yaml`` (intrinsics,
     resolution, T_BS); ground truth ``mav0/state_groundtruth_estimate0/data.csv`` (body poses,
@@ -184,7 +171,7 @@ def open_euroc(path) -> Sequence:
     csv = cam_dir / "data.csv"
     if not csv.is_file():
         raise DataError(csv, "EuRoC cam0/data.csv not found")
-    stamps, names = [], []
+    stamps, names, lines = [], [], []
     with open(csv) as fh:
         for k, line in enumerate(fh, start=1):
             if line.startswith("#") or not line.strip():
@@ -194,7 +181,8 @@ def open_euroc(path) -> Sequence:
                 raise DataError(csv, "expected 'timestamp_ns,filename'", k)
             stamps.append(int(parts[0]) * 1e-9)
             names.append(parts[1])
-    stamps = sorted_stamps_or_error(csv, np.array(stamps))
+            lines.append(k)
+    stamps = check_stamps(csv, np.array(stamps), lines)
     sensor = cam_dir / "sensor.yaml"
     if not sensor.is_file():
         raise DataError(sensor, "EuRoC sensor.yaml not found")
@@ -215,8 +203,8 @@ def open_euroc(path) -> Sequence:
     if gt_csv.is_file():
         rows = np.loadtxt(gt_csv, delimiter=",", comments="#", usecols=range(8))
         t_gt = rows[:, 0] * 1e-9
-        body = [Pose.from_vector(np.r_[r[1:4], r[5:8], r[4]]) for r in rows]  # EuRoC stores qw first
-        cam = Pose.from_matrix(T_BS)
+        body = [Pose.from_vector(jnp.asarray(np.r_[r[1:4], r[5:8], r[4]])) for r in rows]  # EuRoC stores qw first
+        cam = Pose.from_matrix(jnp.asarray(T_BS))
         poses = np.array([np.asarray(b.compose(cam).to_vector()) for b in body])
         gt = (t_gt, poses)
 
@@ -228,12 +216,13 @@ def open_euroc(path) -> Sequence:
 
 
 def _dso_times(path, n_expected=None):
-    ids, stamps, exps = [], [], []
-    for k, vals in _table(pathlib.Path(path), (2, 3)):
-        ids.append(vals[0])
+    path = pathlib.Path(path)
+    lines, stamps, exps = [], [], []
+    for k, vals in read_table(path, (2, 3), path.name):
+        lines.append(k)
         stamps.append(vals[1])
         exps.append(vals[2] / 1000.0 if len(vals) == 3 else np.nan)
-    stamps = sorted_stamps_or_error(path, np.array(stamps))
+    stamps = check_stamps(path, np.array(stamps), lines)
     exps = np.array(exps)
     if n_expected is not None and len(stamps) != n_expected:
         raise DataError(path, f"{len(stamps)} entries but the sequence has {n_expected} frames")

@@ -2,7 +2,9 @@
 
 from .align import umeyama
 from .associate import associate, interpolate_poses
-from .metrics import ape, exposure_path_error, frame_drop_rate, rpe, statistics
+from .metrics import aligned_positions, ape, exposure_path_error, frame_drop_rate, rpe, statistics
+from .poses import pose_matrices, slerp
+from .runs import evaluate_run
 
 __all__ = [
     "associate",
@@ -10,7 +12,11 @@ __all__ = [
     "umeyama",
     "ape",
     "rpe",
+    "aligned_positions",
     "statistics",
     "frame_drop_rate",
     "exposure_path_error",
+    "evaluate_run",
+    "pose_matrices",
+    "slerp",
 ]

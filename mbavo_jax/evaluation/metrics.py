@@ -7,28 +7,9 @@ import numpy as np
 from ..errors import MbavoError
 from .align import umeyama
 from .associate import associate
+from .poses import pose_matrices, slerp
 
-__all__ = ["statistics", "ape", "rpe", "frame_drop_rate", "exposure_path_error", "pose_matrices"]
-
-
-def _quat_to_R(q):
-    x, y, z, w = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def pose_matrices(poses: np.ndarray) -> np.ndarray:
-    """(N, 7) [t, q] → (N, 4, 4)."""
-    T = np.tile(np.eye(4), (len(poses), 1, 1))
-    for k, p in enumerate(poses):
-        T[k, :3, :3] = _quat_to_R(p[3:] / np.linalg.norm(p[3:]))
-        T[k, :3, 3] = p[:3]
-    return T
+__all__ = ["statistics", "ape", "rpe", "aligned_positions", "frame_drop_rate", "exposure_path_error", "pose_matrices"]
 
 
 def statistics(errors: np.ndarray) -> dict:
@@ -73,6 +54,13 @@ def ape(stamps_ref, poses_ref, stamps_est, poses_est, align: str = "se3", max_di
     return out
 
 
+def aligned_positions(stamps_ref, poses_ref, stamps_est, poses_est, align: str = "se3", max_diff: float = 0.01):
+    """The matched poses as ``ape`` sees them: (i_est, i_ref, reference positions (M, 3), estimated
+    positions after alignment (M, 3)); for plots."""
+    i_est, i_ref, T_ref, T_est = _matched(stamps_ref, poses_ref, stamps_est, poses_est, max_diff)
+    return i_est, i_ref, T_ref[:, :3, 3], _align(T_ref, T_est, align)[0][:, :3, 3]
+
+
 def rpe(stamps_ref, poses_ref, stamps_est, poses_est, delta: int = 1, align: str = "none", max_diff: float = 0.01) -> dict:
     """Relative pose error of the translation part over ``delta`` matched frames (evo's ``rpe``)."""
     i_est, _, T_ref, T_est = _matched(stamps_ref, poses_ref, stamps_est, poses_est, max_diff)
@@ -108,8 +96,6 @@ def exposure_path_error(ref, est, camera: dict, depth: float = 2.0, grid: int = 
     ``grid`` x ``grid`` pixel grid back-projected at ``depth`` metres in the reference mid frame, of
     the points projected with the estimated vs reference start (and end) relative poses.
     """
-    from .associate import slerp
-
     i_est, i_ref = associate(est[0], ref[0], max_diff)
     if len(i_est) == 0:
         raise MbavoError("no overlapping timestamps between estimated and reference exposure paths")

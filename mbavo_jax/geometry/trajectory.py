@@ -30,6 +30,11 @@ class ExposureTrajectory(eqx.Module):
     def middle(self) -> Pose:
         return interpolate(self.start, self.end, 0.5)
 
+    def about_middle(self) -> "ExposureTrajectory":
+        """The same path relative to its own mid-exposure pose: (T_mid_start, T_mid_end)."""
+        mid_inv = self.middle().inverse()
+        return ExposureTrajectory(mid_inv.compose(self.start), mid_inv.compose(self.end))
+
     def normalized(self) -> "ExposureTrajectory":
         """Both quaternions rescaled to unit norm (updates drift by rounding; the analytic
         Jacobians of the supplement assume |q| = 1 exactly)."""

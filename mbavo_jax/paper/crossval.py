@@ -129,7 +129,6 @@ def _log_taylor_branch(q):
 def groups() -> list[_Group]:
     """Each group: samples, forward(sample) -> (f, z0) whose Jacobian f'(z0) the printed form claims."""
     small_r = lambda rng: [np.zeros(3)] + [s * _unit(rng.normal(size=3)) for s in (1e-12, 1e-10, 1e-9)]
-    f64 = lambda a: jnp.asarray(a, jnp.float64)
     return [
         _Group(
             "3-11",

@@ -223,16 +223,20 @@ def local_rotation_jacobians(q0, qtau, s):
     return dq0 @ plus_jacobian(q0), dqtau @ plus_jacobian(qtau)
 
 
-def virtual_pose_jacobian(q0, qtau, s):
+def virtual_pose_jacobian(q0, qtau, s, dq0_dr=None, dqtau_dr=None):
     """∂(p_i, q̄_i)/∂(Δr_0, Δt_0, Δr_τ, Δt_τ), a 7 × 12 matrix (rows: p then q̄), from Eqs. 48-49
-    and 59-60. This is the per-virtual-pose trajectory Jacobian the tracker chains through."""
+    and 56-58 (corrected): the per-virtual-pose trajectory Jacobian the tracker chains through.
+    ``dq0_dr``, ``dqtau_dr`` (4 × 3): derivatives of the start and end quaternions by their local
+    updates; by default Q(q̄)·[½I; 0], the update at Δr = 0 (then this is Eqs. 59-60)."""
     dtype = q0.dtype
-    dr0, drt = local_rotation_jacobians(q0, qtau, s)
+    dq0_dr = plus_jacobian(q0) if dq0_dr is None else dq0_dr
+    dqtau_dr = plus_jacobian(qtau) if dqtau_dr is None else dqtau_dr
+    dqi_dq0, dqi_dqtau = rotation_jacobians_corrected(q0, qtau, s)
     dt0, dtt = translation_jacobians(s, dtype)
     z33 = jnp.zeros((3, 3), dtype)
     z43 = jnp.zeros((4, 3), dtype)
     top = jnp.concatenate([z33, dt0, z33, dtt], axis=1)
-    bottom = jnp.concatenate([dr0, z43, drt, z43], axis=1)
+    bottom = jnp.concatenate([dqi_dq0 @ dq0_dr, z43, dqi_dqtau @ dqtau_dr, z43], axis=1)
     return jnp.concatenate([top, bottom], axis=0)
 
 

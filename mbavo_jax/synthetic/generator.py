@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
-import sys
 import time
 
 import cv2
@@ -33,56 +32,18 @@ import numpy as np
 import yaml
 
 from ..blur import plane_depths_from_keyframe, render_blurry
+from ..config import DEPTH_SIGMA, PRESETS, SynthConfig
 from ..errors import MbavoError
 from ..geometry import quaternion as quat
 from ..geometry.camera import PinholeCamera
 from ..geometry.pose import Pose
 from ..geometry.trajectory import ExposureTrajectory
+from ..image import delinearize
 from ..io import write_camera_yaml, write_exposure_file, write_tum_trajectory
+from ..progress import bar
 from .scene import default_scene, render_exposure, scene_arrays
 
 __all__ = ["SynthConfig", "PRESETS", "generate_sequence", "blur_real_sequence", "camera_path", "mean_blur_length", "sensor_depth", "DEPTH_SIGMA"]
-
-# σ(z) = a + b·(z − 0.4)² metres of each depth model (tracking.geometric uses the same form).
-DEPTH_SIGMA = {
-    "exact": (0.0005, 0.0),  # 16-bit quantisation (0.2 mm) and bilinear interpolation
-    "sensor": (0.0012, 0.0019),  # Kinect v1 axial noise, Nguyen, Izadi & Lovell 2012
-}
-
-
-@dataclasses.dataclass(frozen=True)
-class SynthConfig:
-    """Settings of a generated sequence. ``speed`` (m/s) and ``rotation_rate`` (deg/s) are peak
-    rates of the smooth path; ``exposure_ms`` the exposure time τ; ``subframes`` sub-renders per
-    exposure; ``depth_model``: "exact" or "sensor" (see :func:`sensor_depth`)."""
-
-    frames: int = 100
-    width: int = 640
-    height: int = 480
-    fps: float = 30.0
-    exposure_ms: float = 20.0
-    speed: float = 0.6
-    rotation_rate: float = 60.0
-    subframes: int = 64
-    response_gamma: float = 2.2
-    noise: float = 0.002
-    seed: int = 0
-    real_textures: bool = True
-    depth_model: str = "exact"
-
-    def __post_init__(self):
-        if self.depth_model not in DEPTH_SIGMA:
-            raise ValueError(f"depth_model must be one of {', '.join(DEPTH_SIGMA)}, got {self.depth_model!r}")
-
-
-# Mean blur length at 640x480 (measured by ``mean_blur_length``, reported by ``mbavo synth``):
-# none 0 px, mild ≈ 5 px, strong ≈ 20 px, extreme ≈ 40 px. See docs/benchmarks.md for measured values.
-PRESETS: dict[str, dict] = {
-    "none": dict(exposure_ms=0.0, subframes=1, speed=0.3, rotation_rate=25.0),
-    "mild": dict(exposure_ms=20.0, speed=0.37, rotation_rate=30.5),
-    "strong": dict(exposure_ms=25.0, speed=0.77, rotation_rate=103.0),
-    "extreme": dict(exposure_ms=30.0, speed=1.2, rotation_rate=181.0),
-}
 
 
 def camera_path(t, speed: float, rotation_rate: float, seed: int = 0) -> Pose:
@@ -175,19 +136,9 @@ def _prepare_out(out) -> pathlib.Path:
     return out
 
 
-def _progress(i, n, t0, stream):
-    if stream is None:
-        return
-    el = time.perf_counter() - t0
-    rate = (i + 1) / max(el, 1e-9)
-    stream.write(f"\rsynth {i + 1}/{n} frames  {rate:.1f} fps  eta {max(0, n - i - 1) / rate:.0f} s")
-    if i + 1 == n:
-        stream.write("\n")
-    stream.flush()
-
-
-def generate_sequence(cfg: SynthConfig, out, progress=sys.stderr) -> dict:
-    """Render a blurry sequence into ``out``; returns the summary written to ``synth.yaml``."""
+def generate_sequence(cfg: SynthConfig, out, progress: bool = True) -> dict:
+    """Render a blurry sequence into ``out``; returns the summary written to ``synth.yaml``.
+    ``progress``: a progress bar on stderr (when it is a terminal)."""
     out = _prepare_out(out)
     f = 525.0 * cfg.width / 640.0
     camera = PinholeCamera.create(f, f, (cfg.width - 1) / 2, (cfg.height - 1) / 2, cfg.width, cfg.height)
@@ -198,15 +149,15 @@ def generate_sequence(cfg: SynthConfig, out, progress=sys.stderr) -> dict:
     n_sub = max(1, cfg.subframes if tau > 0 else 1)
     stamps, mids, starts, ends, blur = [], [], [], [], []
     t0 = time.perf_counter()
+    pbar = bar(cfg.frames, "synth", progress)
     for i in range(cfg.frames):
         t_mid = 1.0 + i / cfg.fps  # start at 1 s to keep stamps positive and distinct
         sub_t = t_mid + (np.linspace(-0.5, 0.5, n_sub) if n_sub > 1 else np.zeros(1)) * tau
         poses = _path_poses(sub_t, cfg)
         mid = camera_path(t_mid, cfg.speed, cfg.rotation_rate, cfg.seed)
         radiance, sharp_rad, depth = render_exposure(arrays, camera, poses, mid, cfg.response_gamma)
-        inv_g = 1.0 / cfg.response_gamma
-        blurry = np.asarray(radiance) ** inv_g
-        sharp = np.asarray(sharp_rad) ** inv_g
+        blurry = delinearize(radiance, cfg.response_gamma)
+        sharp = delinearize(sharp_rad, cfg.response_gamma)
         if cfg.noise > 0:
             blurry = blurry + rng.normal(scale=cfg.noise, size=blurry.shape)
         name = f"{t_mid:.6f}.png"
@@ -221,7 +172,8 @@ def generate_sequence(cfg: SynthConfig, out, progress=sys.stderr) -> dict:
         starts.append(np.asarray(start.to_vector()))
         ends.append(np.asarray(end.to_vector()))
         blur.append(mean_blur_length(np.asarray(depth), camera, poses, mid))
-        _progress(i, cfg.frames, t0, progress)
+        pbar.update()
+    pbar.close()
     summary = _write_layout(out, camera, cfg.fps, cfg.exposure_ms, cfg.response_gamma, stamps, stamps, mids, starts, ends, blur, DEPTH_SIGMA[cfg.depth_model])
     summary.update(source="synthetic room", config=dataclasses.asdict(cfg), textures=list(scene.texture_names))
     summary["seconds"] = round(time.perf_counter() - t0, 2)
@@ -270,7 +222,33 @@ class _symmetric_path:
         return jax.vmap(self.trajectory.at)(jnp.linspace(0.0, 1.0, k))
 
 
-def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int = 0, noise: float = 0.0, progress=sys.stderr) -> dict:
+def _blur_direction(gt_poses, i: int, rng: np.random.Generator) -> np.ndarray:
+    """[rotation, translation] direction of frame i's blur: the ground-truth motion to the next frame
+    (from the previous one for the last), or a seeded random direction where there is none."""
+    direction = rng.normal(size=6) * np.array([1, 1, 1, 0.3, 0.3, 0.3])
+    if gt_poses is not None and np.all(np.isfinite(gt_poses[i])):
+        j = min(i + 1, len(gt_poses) - 1) if i + 1 < len(gt_poses) else i - 1
+        if np.all(np.isfinite(gt_poses[j])) and j != i:
+            Ti, Tj = Pose.from_vector(jnp.asarray(gt_poses[i])), Pose.from_vector(jnp.asarray(gt_poses[j]))
+            rel = Ti.inverse().compose(Tj)
+            direction = np.concatenate([np.asarray(quat.log(rel.q)), np.asarray(rel.t)])
+    return direction
+
+
+def _blur_path(direction: np.ndarray, depth: np.ndarray, cam, blur_px: float) -> ExposureTrajectory:
+    """The symmetric exposure path along ``direction`` whose mean blur over ``depth`` is ``blur_px``."""
+    med_depth = float(np.nanmedian(depth)) if np.isfinite(depth).any() else 1.0
+    # pixel motion of the unit direction ≈ f (|ω| + |v| / Z); scale it to the requested blur
+    px_per_unit = float(cam.fx) * (np.linalg.norm(direction[:3]) + np.linalg.norm(direction[3:]) / med_depth)
+    delta = direction * (blur_px / max(px_per_unit, 1e-9))
+    # that estimate is an upper bound (e.g. roll blurs less): measure the path and rescale once
+    measured = mean_blur_length(depth, cam, _symmetric_path(delta)(16), Pose.identity())
+    if measured > 1e-6:
+        delta = delta * (blur_px / measured)
+    return _symmetric_path(delta).trajectory
+
+
+def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int = 0, noise: float = 0.0, progress: bool = True) -> dict:
     """Blur a real RGB-D sequence along known exposure paths with the core blur model.
 
     For frame k the exposure path is symmetric about the frame's own pose: T_k_start = exp(−δ/2),
@@ -290,26 +268,12 @@ def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int =
     if seq.groundtruth is not None:
         gt_poses = interpolate_poses(seq.groundtruth[0], seq.groundtruth[1], seq.timestamps)
     t0 = time.perf_counter()
+    pbar = bar(len(seq), "blur", progress)
     for i in range(len(seq)):
         fr = seq[i]
-        direction = rng.normal(size=6) * np.array([1, 1, 1, 0.3, 0.3, 0.3])
-        if gt_poses is not None and np.all(np.isfinite(gt_poses[i])):
-            j = min(i + 1, len(seq) - 1) if i + 1 < len(seq) else i - 1
-            if np.all(np.isfinite(gt_poses[j])) and j != i:
-                Ti, Tj = Pose.from_vector(jnp.asarray(gt_poses[i])), Pose.from_vector(jnp.asarray(gt_poses[j]))
-                rel = Ti.inverse().compose(Tj)
-                direction = np.concatenate([np.asarray(quat.log(rel.q)), np.asarray(rel.t)])
+        direction = _blur_direction(gt_poses, i, rng)
         depth = np.where(np.isfinite(fr.depth), fr.depth, np.nan).astype(np.float32)
-        med_depth = float(np.nanmedian(depth)) if np.isfinite(depth).any() else 1.0
-        # pixel motion of the unit direction ≈ f (|ω| + |v| / Z); scale it to the requested blur
-        px_per_unit = float(cam.fx) * (np.linalg.norm(direction[:3]) + np.linalg.norm(direction[3:]) / med_depth)
-        delta = direction * (blur_px / max(px_per_unit, 1e-9))
-        # that estimate is an upper bound (e.g. roll blurs less): measure the path and rescale once
-        measured = mean_blur_length(depth, cam, _symmetric_path(delta)(16), Pose.identity())
-        if measured > 1e-6:
-            delta = delta * (blur_px / measured)
-        traj = _symmetric_path(delta).trajectory
-        start, end = traj.start, traj.end
+        traj = _blur_path(direction, depth, cam, blur_px)
         img = jnp.asarray(fr.image)
         planes = plane_depths_from_keyframe(jnp.asarray(depth), cam, traj.middle())
         blurry, valid = render_blurry(img, planes, cam, traj, n)
@@ -327,11 +291,12 @@ def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int =
         if known:  # frames without ground truth get none in groundtruth.txt / exposure.txt
             gt_stamps.append(fr.timestamp)
             mids.append(np.asarray(T_w.to_vector()))
-            starts.append(np.asarray(T_w.compose(start).to_vector()))
-            ends.append(np.asarray(T_w.compose(end).to_vector()))
+            starts.append(np.asarray(T_w.compose(traj.start).to_vector()))
+            ends.append(np.asarray(T_w.compose(traj.end).to_vector()))
         sub = jax.vmap(lambda s: T_w.compose(traj.at(s)))(jnp.linspace(0.0, 1.0, 16))
         blur.append(mean_blur_length(depth, cam, sub, T_w))
-        _progress(i, len(seq), t0, progress)
+        pbar.update()
+    pbar.close()
     exposure_ms = 1000.0 / 30.0 * 0.5
     summary = _write_layout(out, cam, 30.0, exposure_ms, 1.0, stamps, gt_stamps, mids, starts, ends, blur,
                             seq.meta.get("depth_sigma", DEPTH_SIGMA["sensor"]))  # real RGB-D: Kinect-class unless the source says

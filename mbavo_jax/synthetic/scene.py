@@ -17,8 +17,9 @@ import numpy as np
 
 from ..geometry.camera import PinholeCamera
 from ..geometry.pose import Pose
+from ..image import bilinear_wrapped
 
-__all__ = ["Scene", "make_textures", "default_scene", "scene_arrays", "render", "render_exposure"]
+__all__ = ["Scene", "make_textures", "default_scene", "scene_arrays", "render_exposure"]
 
 TEXTURE_SIZE = 512
 
@@ -138,7 +139,8 @@ def default_scene(seed: int = 0, use_real_textures: bool = True, shared_data=Non
     )
 
 
-def _scene_arrays(scene: Scene):
+def scene_arrays(scene: Scene):
+    """The scene as device arrays (boxes, inside, texture index, texels per metre, textures)."""
     return (
         jnp.asarray(scene.boxes),
         jnp.asarray(scene.inside),
@@ -146,20 +148,6 @@ def _scene_arrays(scene: Scene):
         jnp.asarray(scene.texels_per_m),
         jnp.asarray(scene.textures),
     )
-
-
-def _sample_wrapped(tex, u, v):
-    s = tex.shape[0]
-    u = jnp.mod(u, s)
-    v = jnp.mod(v, s)
-    u0 = jnp.floor(u).astype(jnp.int32)
-    v0 = jnp.floor(v).astype(jnp.int32)
-    fu, fv = u - u0, v - v0
-    u1, v1 = (u0 + 1) % s, (v0 + 1) % s
-    u0, v0 = u0 % s, v0 % s
-    a = tex[v0, u0] * (1 - fu) + tex[v0, u1] * fu
-    b = tex[v1, u0] * (1 - fu) + tex[v1, u1] * fu
-    return a * (1 - fv) + b * fv
 
 
 def _render_core(arrays, camera: PinholeCamera, T_world_cam: Pose, gamma):
@@ -204,18 +192,12 @@ def _render_core(arrays, camera: PinholeCamera, T_world_cam: Pose, gamma):
     s = textures.shape[1]
 
     def sample(ti, uu, vv):
-        return _sample_wrapped(flat_tex[ti].reshape(s, s), uu, vv)
+        return bilinear_wrapped(flat_tex[ti].reshape(s, s), uu, vv)
 
     display = jax.vmap(sample)(tex_idx[k].ravel(), uv[..., 0].ravel(), uv[..., 1].ravel()).reshape(h, w)
     radiance = jnp.clip(display, 0.0, 1.0) ** gamma  # textures are display values; radiance is linear
     depth = jnp.where(jnp.isfinite(t), t, 0.0)
     return radiance, depth
-
-
-@jax.jit
-def render(arrays, camera: PinholeCamera, T_world_cam: Pose, gamma=2.2):
-    """Linear radiance and z-depth (metres) of one pinhole view."""
-    return _render_core(arrays, camera, T_world_cam, gamma)
 
 
 @jax.jit
@@ -232,5 +214,3 @@ def render_exposure(arrays, camera: PinholeCamera, poses: Pose, mid: Pose, gamma
     sharp, depth = _render_core(arrays, camera, mid, gamma)
     return total / poses.t.shape[0], sharp, depth
 
-
-scene_arrays = _scene_arrays

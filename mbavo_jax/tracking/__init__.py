@@ -1,8 +1,9 @@
 """The blur-aware tracker (points, residuals with two Jacobian paths, coarse-to-fine LM)."""
 
-from .motion import constant_velocity_guess, exposure_from_velocity, pose_power
+from .level import compiled_programs
+from .motion import constant_velocity_guess, exposure_from_velocity, motion_hypotheses, pose_power
 from .points import PATTERN, LevelPoints, select_points
-from .tracker import Keyframe, Status, TrackerConfig, TrackResult, choose_n, motion_hypotheses, predicted_blur_px, track
+from .tracker import Keyframe, Status, TrackerConfig, TrackResult, choose_n, predicted_blur_px, track
 
 __all__ = [
     "PATTERN",
@@ -19,4 +20,5 @@ __all__ = [
     "constant_velocity_guess",
     "exposure_from_velocity",
     "pose_power",
+    "compiled_programs",
 ]

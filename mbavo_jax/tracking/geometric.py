@@ -28,7 +28,7 @@ from jaxtyping import Array, Bool, Float
 
 from ..geometry.camera import PinholeCamera
 from ..geometry.pose import Pose
-from ..image import bilinear_cell
+from ..image import bilinear_cell, lerp_cell
 from .points import LevelPoints
 
 __all__ = ["select_depth_points", "depth_residuals", "sample_depth"]
@@ -64,16 +64,14 @@ def select_depth_points(depth: np.ndarray, stride: int, edge_rel: float = 0.02, 
     return LevelPoints(pixels, np.where(ok, d, 1.0).astype(np.float32), ok)
 
 
-def sample_depth(depth: Float[Array, "H W"], x: Float[Array, "2"], edge_rel: float):
+def sample_depth(depth: Float[Array, "H W"], x: Float[Array, "2"], edge_rel: float | Float[Array, ""]):
     """Bilinear depth at x and its validity: inside, all four neighbours > 0 and within ``edge_rel``
     of each other (0 marks a missing measurement)."""
-    inside, fu, fv, (d00, d01, d10, d11) = bilinear_cell(depth, x)
-    nb = jnp.stack([d00, d01, d10, d11])
+    inside, fu, fv, corners = bilinear_cell(depth, x)
+    nb = jnp.stack(corners)
     lo, hi = jnp.min(nb), jnp.max(nb)
     valid = inside & (lo > 0) & (hi - lo < edge_rel * jnp.maximum(lo, 1e-6))
-    top = d00 + fu * (d01 - d00)
-    bottom = d10 + fu * (d11 - d10)
-    return jnp.where(valid, top + fv * (bottom - top), 1.0), valid
+    return jnp.where(valid, lerp_cell(fu, fv, corners)[0], 1.0), valid
 
 
 def depth_residuals(
@@ -83,9 +81,9 @@ def depth_residuals(
     pixels: Float[Array, "N 2"],
     depths: Float[Array, "N"],
     pvalid: Bool[Array, "N"],
-    edge_rel: float,
+    edge_rel: float | Float[Array, ""],
     sigma: tuple = (0.0012, 0.0019),
-    outlier: float = float("inf"),
+    outlier: float | Float[Array, ""] = float("inf"),
 ) -> tuple[Float[Array, "N"], Bool[Array, "N"]]:
     """Depth residuals (D_cur(π(X')) − X'_z) / σ(X'_z) of the keyframe points seen from
     ``mid`` = T_ref_mid, and their validity (invalid residuals are 0). ``cur_depth`` uses 0 for

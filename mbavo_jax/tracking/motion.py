@@ -1,18 +1,20 @@
-"""Motion models for initialisation: the constant-velocity exposure path."""
+"""Motion models for initialisation: the constant-velocity exposure path and DSO-style hypotheses."""
 
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from ..geometry import quaternion as quat
 from ..geometry.pose import Pose
 from ..geometry.trajectory import ExposureTrajectory
 
-__all__ = ["pose_power", "exposure_from_velocity", "constant_velocity_guess"]
+__all__ = ["pose_power", "exposure_from_velocity", "constant_velocity_guess", "motion_hypotheses"]
 
 
 def pose_power(T: Pose, alpha: float) -> Pose:
     """T^α with the same decomposition as Eqs. 43-44: rotation exp(α log q), translation α t."""
+    alpha = jnp.asarray(alpha, T.q.dtype)
     return Pose(quat.exp(alpha * quat.log(T.q)), alpha * T.t)
 
 
@@ -37,3 +39,25 @@ def constant_velocity_guess(
     start, end = mid.compose(about_mid.start), mid.compose(about_mid.end)
     ref_inv = T_world_ref.inverse()
     return ExposureTrajectory(ref_inv.compose(start), ref_inv.compose(end))
+
+
+def motion_hypotheses(init: ExposureTrajectory, rotation_deg: float = 2.0) -> list[tuple[str, ExposureTrajectory]]:
+    """DSO-style alternatives to the guess ``init``, named. Each moves its mid-exposure pose M — to
+    the identity (zero motion), M^½ (half), M² (double) and M turned by ±``rotation_deg`` about each
+    axis — and keeps the guess's blur (start and end about M as in ``init``)."""
+    mid = init.middle()
+    to_start = mid.inverse().compose(init.start)
+    to_end = mid.inverse().compose(init.end)
+
+    def around(m: Pose):
+        return ExposureTrajectory(m.compose(to_start), m.compose(to_end))
+
+    out = [("zero motion", around(Pose.identity())), ("half motion", around(pose_power(mid, 0.5))),
+           ("double motion", around(pose_power(mid, 2.0)))]
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            r = np.zeros(3, np.float32)
+            r[axis] = sign * np.deg2rad(rotation_deg)
+            turn = Pose(quat.exp(jnp.asarray(r)), jnp.zeros(3))
+            out.append((f"rotation {'xyz'[axis]}{'+' if sign > 0 else '-'}", around(mid.compose(turn))))
+    return out

@@ -22,15 +22,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from ..blur import synthesize, virtual_pq, virtual_sample
 from ..geometry import quaternion as quat
-from ..image import bilinear_cell
 from ..geometry.camera import PinholeCamera
-from ..geometry.pose import Pose
-from ..geometry.trajectory import ExposureTrajectory, interpolate, virtual_times
-from ..geometry.transfer import plane_point
+from ..geometry.trajectory import ExposureTrajectory, virtual_times
 from ..paper import jacobians as pj
 
-__all__ = ["LevelProblem", "residuals_and_jacobian", "make_residual_fn", "robust", "bilinear_with_gradient"]
+__all__ = ["LevelProblem", "residuals_and_jacobian", "make_residual_fn", "robust"]
 
 
 class LevelProblem(eqx.Module):
@@ -47,60 +45,29 @@ class LevelProblem(eqx.Module):
     jacobian: str = eqx.field(static=True)  # "autodiff" | "analytic"
 
 
-def bilinear_with_gradient(image, x):
-    """Bilinear sample, its exact spatial derivative (the derivative of the interpolant), validity."""
-    valid, fu, fv, (i00, i01, i10, i11) = bilinear_cell(image, x)
-    top = i00 + fu * (i01 - i00)
-    bottom = i10 + fu * (i11 - i10)
-    value = top + fv * (bottom - top)
-    du = (1 - fv) * (i01 - i00) + fv * (i11 - i10)
-    dv = bottom - top
-    zero = jnp.zeros_like(value)
-    return jnp.where(valid, value, zero), jnp.where(valid, jnp.stack([du, dv]), jnp.zeros(2, value.dtype)), valid
-
-
 def _sample(problem: LevelProblem, pq, ray, d):
-    """v_i for one residual pixel at virtual pose pq = [p (3), q̄ (4)]: value and validity."""
-    p_ref, _, ok = plane_point(pq[3:], pq[:3], ray, d)
-    ok = ok & (p_ref[2] > 1e-6)
-    safe = jnp.where(ok, p_ref, jnp.array([0.0, 0.0, 1.0], p_ref.dtype))
-    value, grad, inside = bilinear_with_gradient(problem.ref_image, problem.camera.project(safe))
-    valid = ok & inside
-    return value, grad, safe, valid
+    """v_i for one residual pixel at virtual pose pq = [p (3), q̄ (4)]: the blur model's sample."""
+    return virtual_sample(problem.ref_image, problem.camera, pq, ray, d)
 
 
 def _trajectory(problem: LevelProblem, y12) -> ExposureTrajectory:
     return problem.anchor.plus(y12)
 
 
-def _virtual_pq(traj: ExposureTrajectory, s):
-    p = interpolate(traj.start, traj.end, s)
-    return jnp.concatenate([p.t, p.q])
-
-
 def _M_autodiff(problem: LevelProblem, y12, s):
-    """M_i = ∂(p_i, q̄_i)/∂y by forward-mode autodiff of the exposure trajectory (n x 7 x 12)."""
-    return jax.vmap(lambda si: jax.jacfwd(lambda yy: _virtual_pq(_trajectory(problem, yy), si))(y12))(s)
+    """M_i = ∂(p_i, q̄_i)/∂y by forward-mode autodiff of the virtual poses (n x 7 x 12)."""
+    return jax.jacfwd(lambda yy: virtual_pq(_trajectory(problem, yy), s.shape[0]))(y12)
 
 
 def _M_analytic(problem: LevelProblem, y12, s):
-    """M_i from the supplement: Eqs. 48-49 (translation), 56-58 corrected (rotation), and the
-    derivative of the update q' = q̄_anchor ⊗ exp(Δr) (Eqs. 36-37 and 3-11 corrected)."""
+    """M_i from the supplement (``paper.jacobians.virtual_pose_jacobian``: Eqs. 48-49, 56-58
+    corrected), with the derivative of the update q' = q̄_anchor ⊗ exp(Δr) at the current Δr
+    (Eqs. 36-37 and 3-11 corrected)."""
     a = problem.anchor
     traj = _trajectory(problem, y12)
-    dq_start_dy = quat.Q(a.start.q) @ pj.exp_jacobian(y12[0:3])  # 4 x 3
-    dq_end_dy = quat.Q(a.end.q) @ pj.exp_jacobian(y12[6:9])
-
-    def one(si):
-        dqi_dqs, dqi_dqe = pj.rotation_jacobians_corrected(traj.start.q, traj.end.q, si)
-        dt_s, dt_e = pj.translation_jacobians(si, y12.dtype)
-        z3 = jnp.zeros((3, 3), y12.dtype)
-        z43 = jnp.zeros((4, 3), y12.dtype)
-        top = jnp.concatenate([z3, dt_s, z3, dt_e], axis=1)
-        bottom = jnp.concatenate([dqi_dqs @ dq_start_dy, z43, dqi_dqe @ dq_end_dy, z43], axis=1)
-        return jnp.concatenate([top, bottom], axis=0)
-
-    return jax.vmap(one)(s)
+    dq_start = quat.Q(a.start.q) @ pj.exp_jacobian(y12[0:3])  # 4 x 3
+    dq_end = quat.Q(a.end.q) @ pj.exp_jacobian(y12[6:9])
+    return jax.vmap(lambda si: pj.virtual_pose_jacobian(traj.start.q, traj.end.q, si, dq_start, dq_end))(s)
 
 
 def _g_autodiff(problem: LevelProblem, pq, ray, d):
@@ -124,17 +91,10 @@ def residuals_and_jacobian(y: Float[Array, "14"], problem: LevelProblem, with_ja
     with zero Jacobian rows. Also returns the per-residual validity.
     """
     y12, a, b = y[:12], y[12], y[13]
-    traj = _trajectory(problem, y12)
     s = virtual_times(problem.n, y.dtype)
-    pqs = jax.vmap(lambda si: _virtual_pq(traj, si))(s)  # (n, 7)
-
-    def per_pose(pq):
-        vals, _, _, ok = jax.vmap(lambda ray, d: _sample(problem, pq, ray, d))(problem.rays, problem.depths)
-        return vals, ok
-
-    vals, ok = jax.vmap(per_pose)(pqs)  # (n, R)
-    valid = problem.mask & jnp.all(ok, axis=0)
-    synth = jnp.mean(vals, axis=0)
+    pqs = virtual_pq(_trajectory(problem, y12), problem.n)  # (n, 7)
+    synth, ok = synthesize(problem.ref_image, problem.camera, pqs, problem.rays, problem.depths)
+    valid = problem.mask & ok
     gain = jnp.exp(a)
     r = jnp.where(valid, gain * synth + b - problem.observed, 0.0)
     if not with_jacobian:

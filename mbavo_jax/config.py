@@ -1,0 +1,454 @@
+"""Every setting of mbavo in one place: frozen dataclasses with one line of help and a valid range per
+field. The YAML files (``configs/default.yaml``), ``--set section.key=value``, the flags of
+``mbavo synth | deblur | bench`` and docs/settings.md are derived from these classes; why a default
+is what it is lives in docs/settings.md.
+
+This module imports neither JAX nor NumPy, so the command line can parse and reject arguments fast.
+Loading goes through OmegaConf structured configs (typed merge of defaults, YAML and dot-list
+overrides, unknown keys rejected); ranges are checked by the dataclasses themselves, so a config
+built in Python is checked the same way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import pathlib
+import typing
+from typing import Any, Callable
+
+from .errors import ConfigError
+
+__all__ = [
+    "setting", "TrackerConfig", "OdometryConfig", "DeblurConfig", "EvalConfig", "RunConfig", "SynthConfig",
+    "BenchConfig", "PRESETS", "DEPTH_SIGMA", "load_config", "default_yaml", "settings_markdown", "add_arguments",
+    "from_arguments", "as_dict", "calibration_of",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class Check:
+    """A valid range: ``ok(value)`` for each value (each element of a tuple), ``text`` for the error."""
+
+    ok: Callable[[Any], bool]
+    text: str
+
+
+POSITIVE = Check(lambda v: v > 0, "> 0")
+NONNEG = Check(lambda v: v >= 0, ">= 0")
+AT_LEAST_1 = Check(lambda v: v >= 1, ">= 1")
+FRACTION = Check(lambda v: 0 < v <= 1, "in (0, 1]")
+FINITE = Check(lambda v: math.isfinite(v), "finite")
+
+
+def at_least(k) -> Check:
+    return Check(lambda v: v >= k, f">= {k}")
+
+
+def setting(default, help: str, check: Check | None = None, choices: tuple = ()):
+    """A dataclass field with its one-line help, its range and (for strings) its choices."""
+    return dataclasses.field(default=default, metadata={"help": help, "check": check, "choices": choices})
+
+
+class Settings:
+    """Mixin: field types, ranges and choices checked on construction (``section`` names the YAML
+    section in messages); ``relations`` adds checks between fields."""
+
+    section: typing.ClassVar[str] = ""
+
+    def __post_init__(self):
+        hints = typing.get_type_hints(type(self))
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            key = f"{self.section}.{f.name}" if self.section else f.name
+            _check_type(key, value, hints[f.name])
+            check, choices = f.metadata.get("check"), f.metadata.get("choices")
+            for v in value if isinstance(value, tuple) else (value,):
+                if check is not None and not check.ok(v):
+                    raise ConfigError(f"{key}: must be {check.text}, got {_show(value)}")
+                if choices and v not in choices:
+                    raise ConfigError(f"{key}: must be one of {', '.join(map(str, choices))}, got {value!r}")
+        for message in self.relations():
+            raise ConfigError(f"{self.section}: {message}" if self.section else message)
+
+    def relations(self) -> list[str]:
+        return []
+
+
+def _show(v) -> str:
+    return str(list(v)) if isinstance(v, tuple) else repr(v)
+
+
+def _check_type(key: str, value, hint) -> None:
+    """bool where bool, int where int (not bool, not 2.5), numbers where float, tuples of those."""
+    origin = typing.get_origin(hint)
+    if origin is tuple:
+        args = [a for a in typing.get_args(hint) if a is not Ellipsis]
+        if not isinstance(value, tuple):
+            raise ConfigError(f"{key}: expected a list, got {value!r}")
+        if Ellipsis not in typing.get_args(hint) and len(value) != len(args):
+            raise ConfigError(f"{key}: expected {len(args)} values, got {_show(value)}")
+        for v in value:
+            _check_type(key, v, args[0])
+        return
+    if hint is bool:
+        ok = isinstance(value, bool)
+    elif hint is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif hint is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    elif hint is str:
+        ok = isinstance(value, str)
+    else:
+        ok = True
+    if not ok:
+        raise ConfigError(f"{key}: expected {getattr(hint, '__name__', hint)}, got {value!r}")
+
+
+# ----------------------------------------------------------------------------------------- tracker
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackerConfig(Settings):
+    """The blur-aware tracker (``tracking.track``): points, virtual frames, solver, robust costs,
+    status thresholds, the exposure-motion prior and the optional RGB-D depth term."""
+
+    section: typing.ClassVar[str] = "tracker"
+
+    levels: int = setting(4, "pyramid levels, solved coarse to fine", AT_LEAST_1)
+    points: tuple[int, ...] = setting((384, 256, 192, 128), "max points per level (fine -> coarse); fixed shapes", AT_LEAST_1)
+    cell: tuple[int, ...] = setting((30, 21, 15, 10), "point-selection grid cell per level (pixels)", AT_LEAST_1)
+    grad_threshold: float = setting(8.0 / 255.0, "points need an intensity gradient above this (8/255)", NONNEG)
+    n: int = setting(64, "virtual frames at full resolution (the paper's 64)", AT_LEAST_1)
+    n_per_level: str = setting("halve", "halve: n/2^level on coarser levels (at least n_coarse_min); same: n on every level",
+                               choices=("halve", "same"))
+    n_coarse_min: int = setting(8, "fewest virtual frames on a coarse level with n_per_level: halve", AT_LEAST_1)
+    n_mode: str = setting("fixed", "fixed | adaptive (n from the predicted blur, per level)", choices=("fixed", "adaptive"))
+    n_min: int = setting(2, "adaptive n: at least this many virtual frames", AT_LEAST_1)
+    n_per_blur_px: float = setting(2.0, "adaptive n: virtual frames per pixel of predicted blur (power of two, <= n)", POSITIVE)
+    jacobian: str = setting("analytic", "analytic (the supplement's corrected formulas) | autodiff", choices=("analytic", "autodiff"))
+    huber: float = setting(9.0 / 255.0, "Huber threshold on [0, 1] intensities (9/255)", POSITIVE)
+    max_steps: tuple[int, ...] = setting((8, 10, 12, 20), "Levenberg-Marquardt steps per level (fine -> coarse)", AT_LEAST_1)
+    rtol: float = setting(1e-3, "LM relative tolerance (optimistix, RMS norm)", POSITIVE)
+    atol: float = setting(1e-4, "LM absolute tolerance (optimistix, RMS norm)", POSITIVE)
+    outlier_sigma: float = setting(2.5, "drop patches whose cost exceeds mean + k std (all but the coarsest level; 0 = off)", NONNEG)
+    affine: bool = setting(True, "estimate the affine brightness e^a I + b")
+    blur_aware: bool = setting(True, "false: classic direct alignment (start = end, one virtual frame)")
+    min_valid: int = setting(60, "fewer valid residuals on a level: too few points", AT_LEAST_1)
+    min_keyframe_points: int = setting(8, "a keyframe with fewer selected points cannot be tracked against", AT_LEAST_1)
+    min_image_std: float = setting(1e-4, "a frame whose intensities vary less than this (black, saturated) is not tracked", NONNEG)
+    good_nrms: float = setting(0.5, "residual RMS / contrast above this: try the motion hypotheses", POSITIVE)
+    lost_nrms: float = setting(1.0, "residual RMS / contrast above this: the frame is lost (~1.4 for an unrelated image)", POSITIVE)
+    diverged_factor: float = setting(2.0, "final RMS above factor x initial RMS + diverged_margin: diverged", POSITIVE)
+    diverged_margin: float = setting(0.02, "see diverged_factor (intensity units)", NONNEG)
+    hypotheses: bool = setting(True, "try DSO-style motion hypotheses when the first solve is poor")
+    hypothesis_rotation_deg: float = setting(2.0, "the rotation hypotheses turn the guess by this much about each axis", POSITIVE)
+    response_gamma: float = setting(1.0, "photometric calibration: images are linearised as I^gamma (camera.yaml's wins)", POSITIVE)
+    blur_prior: float = setting(0.01, "weak prior on the exposure motion start^-1 end: its intensity scale (0 = off)", NONNEG)
+    blur_prior_min_rad: float = setting(5e-4, "prior sigma = min + rel * |initial exposure motion| (radians)", POSITIVE)
+    blur_prior_rel: float = setting(0.2, "see blur_prior_min_rad", NONNEG)
+    depth_weight: float = setting(0.0, "RGB-D: weight of the frame's depth map, intensity units per sigma (0 = images only)", NONNEG)
+    depth_sigma: tuple[float, float] = setting((0.0012, 0.0019), "depth noise sigma(z) = a + b (z - 0.4)^2 m (Kinect v1; camera.yaml's wins)", NONNEG)
+    depth_huber: float = setting(3.0, "Huber threshold of the depth term, in sigma", POSITIVE)
+    depth_outlier: float = setting(20.0, "depth residuals beyond this many sigma (occlusions) are dropped", POSITIVE)
+    depth_levels: int = setting(3, "the depth term is used on this many finest levels (2 for weights >= 0.1)", AT_LEAST_1)
+    depth_stride: int = setting(8, "grid spacing of the depth term's keyframe points (full-resolution pixels)", AT_LEAST_1)
+    depth_edge: float = setting(0.02, "depth samples whose neighbours differ by more than this fraction are edges: dropped", POSITIVE)
+
+    def relations(self) -> list[str]:
+        out = [f"{name} needs one entry per level ({self.levels}), got {list(getattr(self, name))}"
+               for name in ("points", "cell", "max_steps") if len(getattr(self, name)) < self.levels]
+        if self.depth_outlier <= self.depth_huber:
+            out.append(f"depth_outlier ({self.depth_outlier}) must exceed depth_huber ({self.depth_huber})")
+        if self.depth_sigma[0] <= 0:
+            out.append(f"depth_sigma: a must be > 0, got {list(self.depth_sigma)}")
+        if self.good_nrms > self.lost_nrms:
+            out.append(f"good_nrms ({self.good_nrms}) must not exceed lost_nrms ({self.lost_nrms})")
+        return out
+
+
+# ---------------------------------------------------------------------------------------- odometry
+
+
+@dataclasses.dataclass(frozen=True)
+class OdometryConfig(Settings):
+    """The sequence loop (``odometry.run_odometry``): keyframe decisions, recovery, exposure times."""
+
+    section: typing.ClassVar[str] = "odometry"
+
+    keyframe_flow: float = setting(0.1, "new keyframe when the mean point flow exceeds this fraction of the image width", POSITIVE)
+    keyframe_max_blur_px: float = setting(float("inf"), "... unless the frame is blurred more than this (mean px): wait for a sharper one", POSITIVE)
+    keyframe_flow_max: float = setting(0.15, "... but no longer than until the flow exceeds this fraction of the width", POSITIVE)
+    keyframe_min_visible: float = setting(0.6, "... or fewer than this fraction of its points are in view (whatever the blur)", FRACTION)
+    deblur_min_blur_px: float = setting(2.0, "deblur a new keyframe blurred more than this (full-resolution px)", NONNEG)
+    deblur_first_keyframe: bool = setting(True, "deblur the first keyframe (and one made after drops) once the next frame gives the velocity")
+    reset_after_drops: int = setting(3, "consecutive dropped frames before the current frame becomes a keyframe", AT_LEAST_1)
+    reset_min_image_std: float = setting(1e-3, "a frame whose intensities vary less than this never becomes a reset keyframe", NONNEG)
+    exposure_s: float = setting(0.0, "exposure time (s) when the sequence records none (0: frames are sharp)", NONNEG)
+    triptychs: int = setting(3, "blurry / reblurred / deblurred images written for the first deblurred keyframes", NONNEG)
+
+    def relations(self) -> list[str]:
+        if self.keyframe_flow_max < self.keyframe_flow:
+            return [f"keyframe_flow_max ({self.keyframe_flow_max}) must be >= keyframe_flow ({self.keyframe_flow})"]
+        return []
+
+
+@dataclasses.dataclass(frozen=True)
+class DeblurConfig(Settings):
+    """Keyframe deblurring (``deblur.deblur``): min ||A x - b||^2 + lambda ||grad x||^2 by conjugate gradients."""
+
+    section: typing.ClassVar[str] = "deblur"
+
+    n: int = setting(0, "virtual frames of the blur operator; 0: one per pixel of blur (95th percentile), a power of two", NONNEG)
+    n_min: int = setting(8, "with n = 0: at least this many virtual frames", AT_LEAST_1)
+    n_max: int = setting(64, "with n = 0: at most this many virtual frames", AT_LEAST_1)
+    iterations: int = setting(30, "conjugate-gradient iterations", AT_LEAST_1)
+    regularization: float = setting(2e-2, "weight lambda of the gradient penalty", NONNEG)
+
+    def relations(self) -> list[str]:
+        return [f"n_min ({self.n_min}) must not exceed n_max ({self.n_max})"] if self.n_min > self.n_max else []
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig(Settings):
+    """How ``mbavo track`` and the benchmarks score a run against ground truth."""
+
+    section: typing.ClassVar[str] = "evaluation"
+
+    t_max_diff: float = setting(0.02, "largest timestamp difference (s) when matching estimated and true poses", POSITIVE)
+    align: str = setting("se3", "Umeyama alignment before the ATE", choices=("none", "se3", "sim3"))
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """The sections of a config file (``configs/default.yaml``): one per settings class."""
+
+    tracker: TrackerConfig = dataclasses.field(default_factory=TrackerConfig)
+    odometry: OdometryConfig = dataclasses.field(default_factory=OdometryConfig)
+    deblur: DeblurConfig = dataclasses.field(default_factory=DeblurConfig)
+    evaluation: EvalConfig = dataclasses.field(default_factory=EvalConfig)
+
+    def replace(self, **sections) -> "RunConfig":
+        """A copy with fields of sections replaced: ``cfg.replace(tracker=dict(n=32))``."""
+        return dataclasses.replace(self, **{k: dataclasses.replace(getattr(self, k), **v) for k, v in sections.items()})
+
+
+# --------------------------------------------------------------------------------------- generator
+
+# sigma(z) = a + b (z - 0.4)^2 metres of each generated depth model (tracking.geometric uses the same form)
+DEPTH_SIGMA: dict[str, tuple[float, float]] = {
+    "exact": (0.0005, 0.0),  # 16-bit quantisation (0.2 mm) and bilinear interpolation
+    "sensor": (0.0012, 0.0019),  # Kinect v1 axial noise, Nguyen, Izadi & Lovell 2012
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class SynthConfig(Settings):
+    """A generated blurry sequence (``mbavo synth``)."""
+
+    frames: int = setting(100, "number of frames", AT_LEAST_1)
+    width: int = setting(640, "image width", at_least(16))
+    height: int = setting(480, "image height", at_least(16))
+    fps: float = setting(30.0, "frame rate", POSITIVE)
+    exposure_ms: float = setting(20.0, "exposure time tau in ms", NONNEG)
+    speed: float = setting(0.6, "peak camera speed (m/s)", NONNEG)
+    rotation_rate: float = setting(60.0, "peak rotation rate (deg/s)", NONNEG)
+    subframes: int = setting(64, "sub-frame renders per exposure", AT_LEAST_1)
+    response_gamma: float = setting(2.2, "camera response: display = radiance^(1/gamma)", POSITIVE)
+    noise: float = setting(0.002, "Gaussian noise std on [0, 1] intensities", NONNEG)
+    seed: int = setting(0, "seed (the output is deterministic for a seed)", NONNEG)
+    real_textures: bool = setting(True, "use photos from ../shared/data as textures when present")
+    depth_model: str = setting("exact", "exact z-depth, or as a Kinect-class sensor writes it (noise, holes, dropouts)",
+                               choices=tuple(DEPTH_SIGMA))
+
+
+# Mean blur length at 640x480 (``mbavo synth`` reports it): none 0 px, mild ~5, strong ~20, extreme ~40.
+PRESETS: dict[str, dict] = {
+    "none": dict(exposure_ms=0.0, subframes=1, speed=0.3, rotation_rate=25.0),
+    "mild": dict(exposure_ms=20.0, speed=0.37, rotation_rate=30.5),
+    "strong": dict(exposure_ms=25.0, speed=0.77, rotation_rate=103.0),
+    "extreme": dict(exposure_ms=30.0, speed=1.2, rotation_rate=181.0),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchConfig(Settings):
+    """``mbavo bench tracking | odometry``: which data, which methods."""
+
+    frames: int = setting(20, "frame pairs (tracking) or frames per sequence (odometry)", AT_LEAST_1)
+    preset: str = setting("strong,none", "tracking: comma-separated blur presets to generate and run")
+    presets: str = setting("none,mild,strong,extreme", "odometry: blur presets")
+    sensor_presets: str = setting("strong,extreme", "odometry: presets generated again with Kinect-class depth ('' to skip)")
+    tum: str = setting("../shared/data/tum_fr1_xyz_head37", "odometry: real RGB-D clip to blur ('' to skip)")
+    width: int = setting(640, "image width of generated sequences", at_least(16))
+    height: int = setting(480, "image height of generated sequences", at_least(16))
+    seed: int = setting(0, "seed of generated sequences", NONNEG)
+    out: str = setting("runs/bench_odometry", "odometry: output folder")
+    methods: str = setting("", "odometry: comma-separated subset of the methods (default all)")
+    depth_weight: float = setting(0.03, "odometry: tracker.depth_weight of the *_depth methods", NONNEG)
+    no_peers: bool = setting(False, "skip Open3D and OpenCV")
+    peer_depth_max: float = setting(20.0, "depth range (m) of Open3D and OpenCV odometry (their own default, 4 m, drops most of the generated room)", POSITIVE)
+
+
+# ------------------------------------------------------------------------------------ load, derive
+
+SECTIONS = {f.name: f.default_factory for f in dataclasses.fields(RunConfig)}
+
+
+def as_dict(obj) -> dict:
+    """A settings object (or RunConfig) as plain YAML-ready data (tuples as lists)."""
+    conv = lambda v: list(v) if isinstance(v, tuple) else v
+    if isinstance(obj, RunConfig):
+        return {name: as_dict(getattr(obj, name)) for name in SECTIONS}
+    return {f.name: conv(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+
+
+def load_config(path=None, overrides: list[str] | None = None, calibration: dict | None = None) -> RunConfig:
+    """Defaults, then the YAML file at ``path``, then ``calibration`` (the tracker values a
+    sequence's camera.yaml records: response_gamma, depth_sigma), then ``section.key=value``
+    overrides. An unknown section or key, a wrong type or a value out of range raises ConfigError."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    layers = []  # (where it comes from, values)
+    if path is not None:
+        layers.append((str(path), _read_yaml(pathlib.Path(path))))
+    if calibration:
+        layers.append(("camera.yaml", {"tracker": {k: list(v) if isinstance(v, tuple) else v for k, v in calibration.items()}}))
+    for item in overrides or []:
+        key = item.split("=", 1)[0]
+        if "=" not in item or "." not in key:
+            raise ConfigError(f"override '{item}' must look like section.key=value (e.g. tracker.n=32)")
+        layers.append((f"--set {item}", OmegaConf.from_dotlist([item])))
+    merged = OmegaConf.structured(RunConfig)
+    for where, layer in layers:
+        _strict_bools(layer)
+        try:
+            merged = OmegaConf.merge(merged, layer)
+        except OmegaConfBaseException as exc:
+            raise ConfigError(f"{where}: {_omegaconf_message(exc)}") from None
+    try:
+        return OmegaConf.to_object(merged)
+    except OmegaConfBaseException as exc:
+        raise ConfigError(_omegaconf_message(exc)) from None
+
+
+def calibration_of(meta: dict) -> dict:
+    """The tracker settings a sequence's camera.yaml records: the response gamma and the depth noise."""
+    out = {}
+    if "response_gamma" in meta:
+        out["response_gamma"] = float(meta["response_gamma"])
+    if "depth_sigma" in meta:
+        out["depth_sigma"] = tuple(float(x) for x in meta["depth_sigma"])
+    return out
+
+
+def _strict_bools(layer, prefix: str = "") -> None:
+    """OmegaConf turns 3 into true: a bool setting must be written true or false."""
+    for section, values in (layer or {}).items():
+        cls = SECTIONS.get(section)
+        if cls is None or not hasattr(values, "items"):
+            continue
+        hints = typing.get_type_hints(cls)
+        for k, v in values.items():
+            if hints.get(k) is bool and not isinstance(v, bool):
+                raise ConfigError(f"{section}.{k}: expected true or false, got {v!r}")
+
+
+def _read_yaml(p: pathlib.Path) -> dict:
+    import yaml
+
+    if not p.is_file():
+        raise ConfigError(f"{p}: config file not found")
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{p}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict) or not all(isinstance(v, (dict, type(None))) for v in data.values()):
+        raise ConfigError(f"{p}: expected sections {', '.join(f'{s}:' for s in SECTIONS)} holding key: value lines")
+    return {k: v or {} for k, v in data.items()}
+
+
+def _omegaconf_message(exc) -> str:
+    """OmegaConf's error as one line naming the full key."""
+    key = getattr(exc, "full_key", None)
+    first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    if type(exc).__name__ == "ConfigKeyError":
+        return f"unknown setting {key!r} (sections: {', '.join(SECTIONS)}; see configs/default.yaml)"
+    if isinstance(exc.__cause__, ConfigError):  # raised by a dataclass check inside to_object
+        return str(exc.__cause__)
+    return f"{key}: {first}" if key else first
+
+
+def _yaml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float) and math.isinf(v):
+        return ".inf" if v > 0 else "-.inf"
+    if isinstance(v, tuple):
+        return "[" + ", ".join(_yaml_value(x) for x in v) + "]"
+    return repr(v) if isinstance(v, float) else str(v)
+
+
+def default_yaml() -> str:
+    """``configs/default.yaml``: every key of every section with its default and its help line."""
+    lines = ["# mbavo track defaults: every setting, generated from mbavo_jax/config.py (`mbavo config`).",
+             "# Why the defaults are what they are: docs/settings.md."]
+    for name, cls in SECTIONS.items():
+        lines.append(f"{name}:")
+        for f in dataclasses.fields(cls):
+            entry = f"  {f.name}: {_yaml_value(f.default)}"
+            lines.append(f"{entry:<40} # {f.metadata['help']}")
+    return "\n".join(lines) + "\n"
+
+
+def settings_markdown() -> str:
+    """The settings reference table of docs/settings.md (one table per section)."""
+    out = []
+    tables = {**{f"{k}` (config section)": v for k, v in SECTIONS.items()},
+              "mbavo synth` flags": SynthConfig, "mbavo bench` flags": BenchConfig}
+    for name, cls in tables.items():
+        doc = (cls.__doc__ or "").strip().replace("\n    ", " ").replace("``", "`")
+        out += [f"### `{name}", "", doc, "",
+                "| key | default | valid | what it does |", "|---|---|---|---|"]
+        for f in dataclasses.fields(cls):
+            check, choices = f.metadata.get("check"), f.metadata.get("choices")
+            valid = " \\| ".join(choices) if choices else (check.text if check else "")
+            out.append(f"| `{f.name}` | `{_yaml_value(f.default)}` | {valid} | {f.metadata['help'].replace('|', '/')} |")
+        out.append("")
+    return "\n".join(out)
+
+
+# ----------------------------------------------------------------------------------------- argparse
+
+
+def add_arguments(parser, cls, skip: tuple = ()) -> None:
+    """One ``--field-name`` flag per field of ``cls`` (help and choices from the field; bools as
+    on/off switches); defaults are None so that only given flags override (``from_arguments``)."""
+    import argparse
+
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        if f.name in skip:
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        shown = f" (default {_yaml_value(f.default)})" if f.default not in ("", None) else ""
+        hint, help_ = hints[f.name], f"{f.metadata['help']}{shown}".replace("%", "%%")
+        if hint is bool:
+            parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=help_)
+        elif typing.get_origin(hint) is tuple:
+            elem = [a for a in typing.get_args(hint) if a is not Ellipsis][0]
+            parser.add_argument(flag, dest=f.name, type=elem, nargs="+", default=None, help=help_)
+        else:
+            parser.add_argument(flag, dest=f.name, type=hint, default=None, help=help_,
+                                choices=f.metadata.get("choices") or None)
+
+
+def from_arguments(cls, args, base: dict | None = None):
+    """An instance of ``cls`` from ``base`` (e.g. a preset) and the flags given in ``args``."""
+    values = dict(base or {})
+    for f in dataclasses.fields(cls):
+        v = getattr(args, f.name, None)
+        if v is not None:
+            values[f.name] = tuple(v) if isinstance(v, list) else v
+    return cls(**values)

@@ -1,0 +1,113 @@
+"""The files of a run, owned by one object: trajectory.txt (mid-exposure, camera-to-world),
+exposure.txt (start and end poses), keyframes.txt, frames.csv (one row per frame), keyframes/
+(keyframe images, 16-bit, for --resume and the benchmarks) and triptych_*.png. Every frame's
+records are written and flushed together."""
+
+from __future__ import annotations
+
+import csv
+import pathlib
+
+import cv2
+import jax.numpy as jnp
+import numpy as np
+
+from ..blur import plane_depths_from_keyframe, render_blurry
+from ..geometry import PinholeCamera, Pose
+from ..image import delinearize, linearize
+from ..io import TrajectoryWriter
+from .state import FrameOutcome, Triptych
+
+__all__ = ["RunOutputs", "CSV_COLUMNS", "keyframe_image_path", "read_keyframe_image"]
+
+CSV_COLUMNS = ["index", "timestamp", "status", "rms", "n_finest", "blur_px", "hypothesis", "ms", "keyframe"]
+EXPOSURE_HEADER = "timestamp start:tx ty tz qx qy qz qw end:tx ty tz qx qy qz qw (camera-to-world)"
+
+
+def keyframe_image_path(out: pathlib.Path, stamp: float) -> pathlib.Path:
+    return pathlib.Path(out) / "keyframes" / f"{stamp:.6f}.png"
+
+
+def read_keyframe_image(out: pathlib.Path, stamp: float) -> np.ndarray | None:
+    """A keyframe image written by a run (float [0, 1]), or None when missing."""
+    path = keyframe_image_path(out, stamp)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
+    return None if img is None else img.astype(np.float32) / 65535.0
+
+
+def _vec(p: Pose) -> np.ndarray:
+    return np.asarray(p.to_vector(), np.float64)
+
+
+def _csv_row(o: FrameOutcome) -> list:
+    if o.result is None and o.status == "keyframe":  # the first frame
+        return [o.index, f"{o.timestamp:.6f}", "keyframe", 0.0, 0, 0.0, "", 0.0, 1]
+    diag = o.result.diagnostics if o.result is not None else {}
+    levels = diag.get("levels") or [{}]
+    return [o.index, f"{o.timestamp:.6f}", o.status, f"{diag.get('rms', float('nan')):.5f}", levels[-1].get("n", 0),
+            f"{diag.get('blur_px', 0.0):.2f}", diag.get("hypothesis", ""), f"{1000 * o.track_seconds:.1f}", int(o.new_keyframe is not None)]
+
+
+class RunOutputs:
+    """Writers of one run folder. ``append``: continue the files of an earlier run (``--resume``);
+    otherwise they start afresh and keyframe images and triptychs of an earlier run are removed."""
+
+    def __init__(self, out, camera: PinholeCamera, response_gamma: float, append: bool = False):
+        self.out, self.camera, self.gamma = pathlib.Path(out), camera, response_gamma
+        self.out.mkdir(parents=True, exist_ok=True)
+        if not append:
+            for stale in [*(self.out / "keyframes").glob("*.png"), *self.out.glob("triptych_*.png")]:
+                stale.unlink()
+        self.triptychs = len(list(self.out.glob("triptych_*.png")))
+        self.trajectory = TrajectoryWriter(self.out / "trajectory.txt", append=append)
+        self.exposure = TrajectoryWriter(self.out / "exposure.txt", EXPOSURE_HEADER, append=append)
+        self.keyframes = TrajectoryWriter(self.out / "keyframes.txt", append=append)
+        fresh = not (append and (self.out / "frames.csv").exists())
+        self._csv_fh = open(self.out / "frames.csv", "w" if fresh else "a", newline="")
+        self._csv = csv.writer(self._csv_fh)
+        if fresh:
+            self._csv.writerow(CSV_COLUMNS)
+            self._csv_fh.flush()
+
+    def write(self, o: FrameOutcome) -> None:
+        """All records of one frame: images first, then the text files, each flushed."""
+        for stamp, image in o.replaced_images:
+            self.save_keyframe_image(stamp, image)
+        new = o.new_keyframe
+        if new is not None:
+            self.save_keyframe_image(new.stamp, new.image)
+            if new.triptych is not None:
+                self.draw_triptych(new.triptych)
+        if o.tracked:
+            self.trajectory.write(o.timestamp, _vec(o.T_world_mid))
+            self.exposure.write(o.timestamp, _vec(o.T_world_start), _vec(o.T_world_end))
+        if new is not None:
+            self.keyframes.write(new.stamp, _vec(new.T_world_kf))
+        self._csv.writerow(_csv_row(o))
+        self._csv_fh.flush()
+
+    def save_keyframe_image(self, stamp: float, image: np.ndarray) -> None:
+        path = keyframe_image_path(self.out, stamp)
+        path.parent.mkdir(exist_ok=True)
+        cv2.imwrite(str(path), np.clip(np.round(image * 65535), 0, 65535).astype(np.uint16))
+
+    def draw_triptych(self, t: Triptych) -> None:
+        """Blurry input | our blur model applied to the deblurred image | deblurred image. Pixels the
+        model cannot synthesise (no depth, outside) show the input."""
+        planes = plane_depths_from_keyframe(jnp.asarray(t.depth), self.camera, Pose.identity())
+        rb, ok = render_blurry(jnp.asarray(linearize(t.sharp, self.gamma)), planes, self.camera, t.path.about_middle(), t.n)
+        rb = np.where(np.asarray(ok), delinearize(np.asarray(rb), self.gamma), t.blurry)
+        row = np.concatenate([t.blurry, rb, t.sharp], axis=1)
+        cv2.imwrite(str(self.out / f"triptych_{self.triptychs}.png"), np.clip(row * 255, 0, 255).astype(np.uint8))
+        self.triptychs += 1
+
+    def close(self) -> None:
+        for w in (self.trajectory, self.exposure, self.keyframes):
+            w.close()
+        self._csv_fh.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

@@ -1,0 +1,104 @@
+"""The state a sequence loop carries from frame to frame, and what one frame's step produces.
+
+A pipeline (the RGB-D one in ``odometry.rgbd``; a monocular one plugs in the same way) is an
+object with ``step(state, frame) -> (state, outcome)``: a pure function of its inputs that does no
+file I/O. ``odometry.outputs`` writes outcomes, ``odometry.run`` drives the loop and resumes it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from ..geometry import ExposureTrajectory, Pose
+from ..tracking import Keyframe, TrackResult
+
+__all__ = ["KeyframeState", "PendingDeblur", "RunState", "NewKeyframe", "Triptych", "FrameOutcome", "Pipeline"]
+
+
+@dataclasses.dataclass(frozen=True)
+class KeyframeState:
+    """The keyframe frames are tracked against: its points and pyramid, its pose, its stamp."""
+
+    keyframe: Keyframe
+    T_world_kf: Pose
+    stamp: float
+
+
+@dataclasses.dataclass(frozen=True)
+class PendingDeblur:
+    """A keyframe made without an exposure path (the first frame, a reset after drops): its raw
+    image, depth and exposure time, until the next tracked frame gives the camera's velocity."""
+
+    image: np.ndarray
+    depth: np.ndarray
+    exposure: float
+
+
+@dataclasses.dataclass(frozen=True)
+class RunState:
+    """Everything the loop carries between frames."""
+
+    keyframe: KeyframeState | None = None
+    mids: tuple[tuple[float, Pose], ...] = ()  # the last (up to two) tracked (stamp, T_world_mid)
+    pending: PendingDeblur | None = None
+    tracked: int = 0
+    dropped: int = 0
+    consecutive_drops: int = 0
+    keyframes: int = 0
+    triptychs: int = 0
+
+    def replace(self, **changes) -> "RunState":
+        return dataclasses.replace(self, **changes)
+
+
+@dataclasses.dataclass(frozen=True)
+class Triptych:
+    """What the blurry / reblurred / deblurred picture of a new keyframe is drawn from."""
+
+    blurry: np.ndarray
+    sharp: np.ndarray
+    depth: np.ndarray
+    path: ExposureTrajectory  # the frame's exposure path (any reference frame)
+    n: int  # virtual frames the deblurring used
+
+
+@dataclasses.dataclass(frozen=True)
+class NewKeyframe:
+    """A keyframe made at this frame (its image: deblurred where it was)."""
+
+    stamp: float
+    T_world_kf: Pose
+    image: np.ndarray
+    triptych: Triptych | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameOutcome:
+    """What one frame produced: its status, its poses when tracked (camera-to-world), a keyframe
+    made at it, keyframe images replaced by deblurred ones, and the tracker's diagnostics."""
+
+    index: int
+    timestamp: float
+    status: str  # "keyframe" (first frame), or the tracker's Status name in lower case
+    T_world_mid: Pose | None = None
+    T_world_start: Pose | None = None
+    T_world_end: Pose | None = None
+    new_keyframe: NewKeyframe | None = None
+    replaced_images: tuple[tuple[float, np.ndarray], ...] = ()  # (stamp, deblurred image) of an earlier keyframe
+    result: TrackResult | None = None
+    seconds: float = 0.0  # the whole step
+    track_seconds: float = 0.0  # tracking (and re-tracking after a pending deblur) only
+
+    @property
+    def tracked(self) -> bool:
+        return self.T_world_mid is not None
+
+
+@runtime_checkable
+class Pipeline(Protocol):
+    """A front-end (+ back-end) the sequence loop runs: one pure step per frame."""
+
+    def step(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]: ...

@@ -1,0 +1,251 @@
+"""One pyramid level of the tracker: its residuals and its Levenberg-Marquardt solve.
+
+The cost of a level is the sum of three named residual blocks over the solver's unknowns z:
+
+* :func:`photometric_residuals`: the blur model against the blurry frame (square-rooted Huber);
+* :func:`depth_residuals_block`: the optional RGB-D term (``tracking.geometric``);
+* :func:`exposure_prior_residuals`: a weak prior on the exposure motion start⁻¹·end.
+
+:func:`solve_level` is one jit-compiled program per (level shapes, n, static settings): a sequence
+compiles once per level.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import optimistix as optx
+from jaxtyping import Array, Bool, Float
+
+from ..geometry import quaternion as quat
+from ..geometry.camera import PinholeCamera
+from ..geometry.trajectory import ExposureTrajectory
+from ..masked import count, masked_mean
+from .geometric import depth_residuals
+from .points import PATTERN
+from .residuals import LevelProblem, make_residual_fn, residuals_and_jacobian, robust
+
+__all__ = ["LevelInputs", "LevelSettings", "Parametrization", "ExposurePrior", "DepthTerm", "LevelObjective", "LevelResult",
+           "residual_pixels", "photometric_residuals", "depth_residuals_block", "exposure_prior_residuals", "solve_level",
+           "compiled_programs"]
+
+_TRACES = {"solve_level": 0}
+
+
+def compiled_programs() -> int:
+    """How many level programs the tracker has compiled in this process (one per new signature)."""
+    return _TRACES["solve_level"]
+
+
+class LevelInputs(eqx.Module):
+    """What one level's solve reads: the keyframe level, its points, the current frame, the anchor
+    (y = 0 is this exposure path) and the affine brightness carried over from the coarser level."""
+
+    ref_image: Float[Array, "H W"]
+    camera: PinholeCamera
+    cur_image: Float[Array, "H W"]
+    pixels: Float[Array, "N 2"]
+    depths: Float[Array, " N"]
+    valid: Bool[Array, " N"]
+    anchor: ExposureTrajectory
+    affine_ab: Float[Array, "2"]
+
+
+class LevelSettings(eqx.Module):
+    """Per-level solver settings; the static ones select the compiled program."""
+
+    huber: Float[Array, ""]
+    outlier_sigma: Float[Array, ""]
+    rtol: Float[Array, ""]
+    atol: Float[Array, ""]
+    n: int = eqx.field(static=True)
+    jacobian: str = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+    rigid: bool = eqx.field(static=True)
+    affine: bool = eqx.field(static=True)
+    use_outliers: bool = eqx.field(static=True)
+
+
+class Parametrization(eqx.Module):
+    """The solver's unknowns z → y = [Δstart (6), Δend (6), a, b]: 12 blur-aware unknowns or 6 rigid
+    ones (start = end), plus 2 affine ones when estimated (added to the coarser level's a, b)."""
+
+    affine_ab: Float[Array, "2"]
+    rigid: bool = eqx.field(static=True)
+    affine: bool = eqx.field(static=True)
+
+    @property
+    def motion_size(self) -> int:
+        return 6 if self.rigid else 12
+
+    def size(self) -> int:
+        return self.motion_size + (2 if self.affine else 0)
+
+    def expand(self, z: Float[Array, " m"]) -> Float[Array, "14"]:
+        m = self.motion_size
+        y12 = jnp.concatenate([z[:6], z[:6]]) if self.rigid else z[:12]
+        ab = z[m : m + 2] if self.affine else jnp.zeros(2, z.dtype)
+        return jnp.concatenate([y12, self.affine_ab + ab])
+
+
+class ExposurePrior(eqx.Module):
+    """Gaussian prior on the exposure motion b = [log(start⁻¹·end rotation), its translation] around
+    the initial guess b₀: residual weight · scale · (b − b₀), with translation scaled by 1/median depth."""
+
+    blur0: Float[Array, "6"]
+    scale: Float[Array, "6"]
+    weight: Float[Array, ""]
+
+
+class DepthTerm(eqx.Module):
+    """The optional RGB-D residuals of one level (``tracking.geometric``) and their weights."""
+
+    cur_depth: Float[Array, "H W"]
+    pixels: Float[Array, "M 2"]
+    depths: Float[Array, " M"]
+    valid: Bool[Array, " M"]
+    weight: Float[Array, ""]
+    huber: Float[Array, ""]
+    outlier: Float[Array, ""]
+    edge: Float[Array, ""]
+    sigma: Float[Array, "2"]
+
+
+class LevelObjective(eqx.Module):
+    """Everything the level's least-squares function reads (passed to optimistix as ``args``)."""
+
+    problem: LevelProblem
+    param: Parametrization
+    huber: Float[Array, ""]
+    prior: ExposurePrior | None
+    depth: DepthTerm | None
+
+
+class LevelResult(eqx.Module):
+    """A level's outcome: the exposure path and affine (a, b) it found, the RMS photometric error
+    after and before, its contrast-normalised RMS, the valid residuals, convergence and LM steps."""
+
+    trajectory: ExposureTrajectory
+    affine_ab: Float[Array, "2"]
+    rms: Float[Array, ""]
+    rms_init: Float[Array, ""]
+    nrms: Float[Array, ""]
+    valid: Array
+    converged: Array
+    steps: Array
+
+
+def exposure_motion(traj: ExposureTrajectory) -> Float[Array, "6"]:
+    """b = [log(q) (3), t (3)] of start⁻¹·end: the camera's motion during the exposure."""
+    rel = traj.start.inverse().compose(traj.end)
+    return jnp.concatenate([quat.log(rel.q), rel.t])
+
+
+def residual_pixels(camera: PinholeCamera, cur_image, pixels, depths, valid, anchor: ExposureTrajectory):
+    """(rays, plane depths, observed intensities, mask) of the residual pixels: each keyframe point
+    projected into the current frame with the anchor's middle pose, rounded, plus the 8-pixel pattern."""
+    mid = anchor.middle().inverse()  # T_cur_ref at mid-exposure
+    P = jax.vmap(camera.backproject)(pixels, depths)
+    x_cur = jax.vmap(lambda p: camera.project(mid.apply(p)))(P)
+    ok_pt = valid & jnp.all(jnp.isfinite(x_cur), axis=1) & (jax.vmap(mid.apply)(P)[:, 2] > 1e-3)
+    base = jnp.round(jnp.where(ok_pt[:, None], x_cur, 0.0))
+    res = (base[:, None, :] + jnp.asarray(PATTERN)[None]).reshape(-1, 2)
+    h, w = cur_image.shape
+    inside = (res[:, 0] >= 1) & (res[:, 1] >= 1) & (res[:, 0] <= w - 2) & (res[:, 1] <= h - 2)
+    mask = jnp.repeat(ok_pt, PATTERN.shape[0]) & inside
+    col = jnp.clip(res[:, 0], 0, w - 1).astype(jnp.int32)
+    row = jnp.clip(res[:, 1], 0, h - 1).astype(jnp.int32)
+    rays = jax.vmap(camera.unit_ray)(res)
+    return rays, jnp.repeat(depths, PATTERN.shape[0]), cur_image[row, col], mask
+
+
+def reject_outlier_patches(problem: LevelProblem, y0, k) -> LevelProblem:
+    """Drop the patches whose mean squared residual at y0 exceeds mean + k·std over the patches."""
+    npat = PATTERN.shape[0]
+    r0, _, v0 = residuals_and_jacobian(y0, problem, with_jacobian=False)
+    vp = v0.reshape(-1, npat)
+    cost = masked_mean(r0.reshape(-1, npat) ** 2, vp, axis=1)
+    good = vp.sum(1) > npat // 2
+    mean = masked_mean(cost, good)
+    std = jnp.sqrt(masked_mean((cost - mean) ** 2, good))
+    keep = cost <= mean + k * std
+    return eqx.tree_at(lambda p: p.mask, problem, problem.mask & jnp.repeat(keep, npat))
+
+
+_RESIDUAL = make_residual_fn()
+
+
+def photometric_residuals(y, problem: LevelProblem, huber) -> Float[Array, " R"]:
+    """The blur model's photometric residuals at y, square-rooted Huber (custom JVP: J @ ẏ)."""
+    return robust(_RESIDUAL(y, problem), huber)
+
+
+def depth_residuals_block(traj: ExposureTrajectory, camera: PinholeCamera, term: DepthTerm) -> Float[Array, " M"]:
+    """The depth term at the path's middle pose, weighted and square-rooted Huber."""
+    r, _ = depth_residuals(traj.middle(), camera, term.cur_depth, term.pixels, term.depths, term.valid, term.edge,
+                           (term.sigma[0], term.sigma[1]), term.outlier)
+    return term.weight * robust(r, term.huber)
+
+
+def exposure_prior_residuals(traj: ExposureTrajectory, prior: ExposurePrior) -> Float[Array, "6"]:
+    """The exposure-motion prior's six residuals."""
+    return prior.weight * prior.scale * (exposure_motion(traj) - prior.blur0)
+
+
+def objective(z, obj: LevelObjective):
+    """The level's least-squares function: the residual blocks stacked."""
+    y = obj.param.expand(z)
+    traj = obj.problem.anchor.plus(y[:12])
+    parts = [photometric_residuals(y, obj.problem, obj.huber)]
+    if obj.depth is not None:
+        parts.append(depth_residuals_block(traj, obj.problem.camera, obj.depth))
+    if obj.prior is not None:
+        parts.append(exposure_prior_residuals(traj, obj.prior))
+    return jnp.concatenate(parts) if len(parts) > 1 else parts[0]
+
+
+def make_prior(level: LevelInputs, problem: LevelProblem, blur0, sigma_intensity, min_rad, rel) -> ExposurePrior:
+    """The prior's scale (translation / median point depth) and weight (σ_I / σ_b · √valid residuals,
+    σ_b = min_rad + rel·|b₀| scaled)."""
+    dtype = level.ref_image.dtype
+    zmed = jnp.nanmedian(jnp.where(level.valid, level.depths, jnp.nan))
+    scale = jnp.concatenate([jnp.ones(3, dtype), jnp.full(3, 1.0 / jnp.where(jnp.isfinite(zmed), zmed, 1.0))])
+    sqrt_valid = jnp.sqrt(count(problem.mask, dtype))
+    weight = sigma_intensity / (min_rad + rel * jnp.linalg.norm(scale * blur0)) * sqrt_valid
+    return ExposurePrior(blur0, scale, weight)
+
+
+def _summary(problem: LevelProblem, y, y0) -> tuple:
+    """(rms, rms at y0, nrms = rms / contrast of the observed pixels, valid residuals)."""
+    r, _, valid = residuals_and_jacobian(y, problem, with_jacobian=False)
+    nvalid = valid.sum()
+    rms = jnp.sqrt(jnp.sum(r * r) / count(valid, r.dtype))
+    obs_mean = masked_mean(problem.observed, valid)
+    obs_std = jnp.sqrt(masked_mean((problem.observed - obs_mean) ** 2, valid))
+    r0, _, valid0 = residuals_and_jacobian(y0, problem, with_jacobian=False)
+    rms0 = jnp.sqrt(jnp.sum(r0**2) / count(valid0, r0.dtype))
+    return rms, rms0, rms / jnp.maximum(obs_std, 1e-6), nvalid
+
+
+@jax.jit
+def solve_level(level: LevelInputs, settings: LevelSettings, prior: tuple | None, depth: DepthTerm | None) -> LevelResult:
+    """One level's LM solve (optimistix, RMS termination norm, QR). ``prior``: None (rigid) or
+    (b₀, σ_I, min_rad, rel) of :func:`make_prior`."""
+    _TRACES["solve_level"] += 1  # runs once per compiled signature
+    rays, d, observed, mask = residual_pixels(level.camera, level.cur_image, level.pixels, level.depths, level.valid, level.anchor)
+    problem = LevelProblem(level.ref_image, level.camera, level.anchor, rays, d, observed, mask, settings.n, settings.jacobian)
+    param = Parametrization(level.affine_ab, settings.rigid, settings.affine)
+    z0 = jnp.zeros(param.size(), level.ref_image.dtype)
+    if settings.use_outliers:
+        problem = reject_outlier_patches(problem, param.expand(z0), settings.outlier_sigma)
+    prior_term = None if prior is None else make_prior(level, problem, *prior)
+    obj = LevelObjective(problem, param, settings.huber, prior_term, depth)
+    solver = optx.LevenbergMarquardt(rtol=settings.rtol, atol=settings.atol, norm=optx.rms_norm, linear_solver=lx.QR())
+    sol = optx.least_squares(objective, solver, z0, args=obj, max_steps=settings.max_steps, throw=False)
+    y = param.expand(sol.value)
+    rms, rms0, nrms, nvalid = _summary(problem, y, param.expand(z0))
+    traj = level.anchor.plus(y[:12]).normalized()
+    converged = sol.result == optx.RESULTS.successful
+    return LevelResult(traj, y[12:14], rms, rms0, nrms, nvalid, converged, sol.stats["num_steps"])

@@ -162,8 +162,6 @@ class TrackerConfig(Settings):
             out.append(f"depth_outlier ({self.depth_outlier}) must exceed depth_huber ({self.depth_huber})")
         if self.depth_sigma[0] <= 0:
             out.append(f"depth_sigma: a must be > 0, got {list(self.depth_sigma)}")
-        if self.good_nrms > self.lost_nrms:
-            out.append(f"good_nrms ({self.good_nrms}) must not exceed lost_nrms ({self.lost_nrms})")
         return out
 
 
@@ -187,11 +185,6 @@ class OdometryConfig(Settings):
     exposure_s: float = setting(0.0, "exposure time (s) when the sequence records none (0: frames are sharp)", NONNEG)
     triptychs: int = setting(3, "blurry / reblurred / deblurred images written for the first deblurred keyframes", NONNEG)
 
-    def relations(self) -> list[str]:
-        if self.keyframe_flow_max < self.keyframe_flow:
-            return [f"keyframe_flow_max ({self.keyframe_flow_max}) must be >= keyframe_flow ({self.keyframe_flow})"]
-        return []
-
 
 @dataclasses.dataclass(frozen=True)
 class DeblurConfig(Settings):
@@ -204,9 +197,6 @@ class DeblurConfig(Settings):
     n_max: int = setting(64, "with n = 0: at most this many virtual frames", AT_LEAST_1)
     iterations: int = setting(30, "conjugate-gradient iterations", AT_LEAST_1)
     regularization: float = setting(2e-2, "weight lambda of the gradient penalty", NONNEG)
-
-    def relations(self) -> list[str]:
-        return [f"n_min ({self.n_min}) must not exceed n_max ({self.n_max})"] if self.n_min > self.n_max else []
 
 
 @dataclasses.dataclass(frozen=True)
@@ -322,14 +312,18 @@ def load_config(path=None, overrides: list[str] | None = None, calibration: dict
         layers.append((f"--set {item}", OmegaConf.from_dotlist([item])))
     merged = OmegaConf.structured(RunConfig)
     for where, layer in layers:
-        _strict_bools(layer)
         try:
+            _strict_bools(layer)
             merged = OmegaConf.merge(merged, layer)
-        except OmegaConfBaseException as exc:
+        except ConfigError:
+            raise
+        except (OmegaConfBaseException, TypeError, ValueError, KeyError) as exc:
             raise ConfigError(f"{where}: {_omegaconf_message(exc)}") from None
     try:
         return OmegaConf.to_object(merged)
-    except OmegaConfBaseException as exc:
+    except ConfigError:
+        raise
+    except (OmegaConfBaseException, TypeError, ValueError) as exc:
         raise ConfigError(_omegaconf_message(exc)) from None
 
 
@@ -372,7 +366,7 @@ def _read_yaml(p: pathlib.Path) -> dict:
 def _omegaconf_message(exc) -> str:
     """OmegaConf's error as one line naming the full key."""
     key = getattr(exc, "full_key", None)
-    first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    first = str(exc).splitlines()[0] if str(exc).strip() else type(exc).__name__
     if type(exc).__name__ == "ConfigKeyError":
         return f"unknown setting {key!r} (sections: {', '.join(SECTIONS)}; see configs/default.yaml)"
     if isinstance(exc.__cause__, ConfigError):  # raised by a dataclass check inside to_object

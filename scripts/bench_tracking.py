@@ -2,7 +2,7 @@
 """Tracking benchmark (same as `mbavo bench tracking`): ours n=1 / n=64 autodiff / n=64 analytic /
 adaptive n vs Open3D and OpenCV RGB-D odometry on the same frames of a generated 640x480 sequence.
 
-Open3D is optional: `pip install -e ".[bench]"` and, on Debian, `apt-get install -y libusb-1.0-0`.
+Open3D comes with `pip install -e ".[bench]"` (or the test extra).
 """
 
 import sys

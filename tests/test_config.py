@@ -79,11 +79,16 @@ def test_bad_values_are_rejected_from_files_and_from_python(tmp_path):
         load_config(tmp_path / "missing.yaml")
     with pytest.raises(ConfigError, match="tracker.huber"):
         TrackerConfig(huber=-1.0)  # a config built in Python is checked the same way
-    with pytest.raises(ConfigError, match="deblur"):
-        DeblurConfig(n_min=32, n_max=16)
+    with pytest.raises(ConfigError, match="deblur.iterations"):
+        DeblurConfig(iterations=0)
+    with pytest.raises(ConfigError, match="depth_outlier"):
+        TrackerConfig(depth_huber=30.0)  # a relation between fields: the outlier cut must exceed the Huber threshold
     with pytest.raises(ConfigError, match="section.key=value"):
         load_config(None, ["tracker=3"])
     assert dataclasses.replace(TrackerConfig(), n=8).n == 8
+    for bad in ("tracker.n=${x}", "tracker.points.0=100"):  # OmegaConf's own failures are one-line errors too
+        with pytest.raises(ConfigError, match="tracker"):
+            load_config(None, [bad])
 
 
 def test_bad_config_key_on_the_command_line_is_one_line_error(tmp_path, mbavo):

@@ -135,8 +135,8 @@ class RGBDPipeline:
     def deblur_pending(self, state: RunState, frame, result: TrackResult):
         """The waiting keyframe deblurred along the constant-velocity path that this frame's motion
         gives, and this frame tracked again against it from the same velocity. Returns (state,
-        result, replaced images); the keyframe stays as it is when sharp enough or when the
-        second tracking fails."""
+        result, replaced images). A keyframe blurred less than ``deblur_min_blur_px`` stays as it
+        is; when the second tracking fails, the first result is kept (with the deblurred keyframe)."""
         kf, pending = state.keyframe, state.pending
         state = state.replace(pending=None)
         mid = result.trajectory.middle()  # T_kf_mid of this frame: the motion over frame.timestamp - stamp

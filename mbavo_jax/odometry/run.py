@@ -29,7 +29,7 @@ def _pose(v) -> Pose:
     return Pose.from_vector(jnp.asarray(v, jnp.float32))
 
 
-def resume_state(out, seq, pipeline: RGBDPipeline) -> tuple[RunState, int]:
+def resume_state(out, seq, pipeline: Pipeline) -> tuple[RunState, int]:
     """(state, index of the next frame) of the run in ``out``, or (a fresh state, 0) when it holds
     no finished frame. The loop goes on after the last tracked frame or keyframe (a keyframe made
     after drops comes later than the last tracked frame), with the last two mid poses as velocity."""
@@ -47,7 +47,8 @@ def resume_state(out, seq, pipeline: RGBDPipeline) -> tuple[RunState, int]:
         raise DataError(keyframe_image_path(out, t_kf[-1]), "keyframe image needed for --resume is missing")
     cfg = pipeline.config
     kf = KeyframeState(Keyframe.create(image, seq[k].depth, seq.camera, cfg.tracker), _pose(p_kf[-1]), float(t_kf[-1]))
-    state = RunState(keyframe=kf, mids=mids, keyframes=len(t_kf), tracked=len(t_done))
+    triptychs = len(list(out.glob("triptych_*.png")))
+    state = RunState(keyframe=kf, mids=mids, keyframes=len(t_kf), tracked=len(t_done), triptychs=triptychs)
     # a keyframe made without an exposure path that no frame has tracked against yet is still the raw
     # image and waits to be deblurred: the first frame with nothing tracked after it, or a reset
     # after drops (later than every tracked frame; the drops before it forgot the velocity)
@@ -69,11 +70,14 @@ def _summary(state: RunState, frames: int, start: RunState) -> dict:
 def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False, max_frames: int | None = None,
                  progress: bool = True, pipeline: Pipeline | None = None) -> dict:
     """Track a whole RGB-D sequence into ``out`` and return a summary (frames, tracked, dropped,
-    keyframes, frame-drop rate). ``resume``: continue after the last frame of the run in ``out``."""
+    keyframes, frame-drop rate). ``resume``: continue after the last frame of the run in ``out``.
+    ``pipeline``: the per-frame step (default: the RGB-D pipeline with ``config``; a given pipeline
+    brings its own config)."""
     out = pathlib.Path(out)
     if not seq.has_depth:
         raise MbavoError(f"{seq.path}: 'mbavo track' needs depth (an RGB-D sequence); the monocular back-end is not built yet")
     pipeline = pipeline or RGBDPipeline(seq.camera, config)
+    config = pipeline.config
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(yaml.safe_dump(as_dict(config), sort_keys=False))
     state, start = resume_state(out, seq, pipeline) if resume else (RunState(), 0)

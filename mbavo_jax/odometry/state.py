@@ -12,6 +12,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from ..config import RunConfig
 from ..geometry import ExposureTrajectory, Pose
 from ..tracking import Keyframe, TrackResult
 
@@ -99,6 +100,11 @@ class FrameOutcome:
 
 @runtime_checkable
 class Pipeline(Protocol):
-    """A front-end (+ back-end) the sequence loop runs: one pure step per frame."""
+    """A front-end (+ back-end) the sequence loop runs: one pure step per frame, its settings, and
+    what a keyframe made without an exposure path waits for (``--resume`` restores it)."""
+
+    config: RunConfig
 
     def step(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]: ...
+
+    def pending_of(self, frame) -> PendingDeblur | None: ...

@@ -277,7 +277,7 @@ class BenchConfig(Settings):
     methods: str = setting("", "odometry: comma-separated subset of the methods (default all)")
     depth_weight: float = setting(0.03, "odometry: tracker.depth_weight of the *_depth methods", NONNEG)
     no_peers: bool = setting(False, "skip Open3D and OpenCV")
-    peer_depth_max: float = setting(20.0, "depth range (m) of Open3D and OpenCV odometry (their own default, 4 m, drops most of the generated room)", POSITIVE)
+    peer_depth_max: float = setting(4.0, "depth range (m) of Open3D and OpenCV odometry (their own default; docs/benchmarks.md compares 20 m)", POSITIVE)
 
 
 # ------------------------------------------------------------------------------------ load, derive

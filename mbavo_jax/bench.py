@@ -77,10 +77,12 @@ class Open3DPeer:
         return o3d.geometry.RGBDImage.create_from_color_and_depth(color, d, depth_scale=1.0, depth_trunc=50.0, convert_rgb_to_intensity=True)
 
     def relative_pose(self, prev, cur, guess_cur_prev):
-        """(ok, T_prev_cur) from ``guess_cur_prev`` (4x4); on failure the guess's inverse."""
+        """(ok, T_prev_cur) from ``guess_cur_prev`` (4x4); on failure (or a non-finite result, which
+        Open3D can report as a success) the guess's inverse."""
         ok, T_cur_prev, _ = self.o3d.pipelines.odometry.compute_rgbd_odometry(prev, cur, self.intrinsic, guess_cur_prev,
                                                                              self.jacobian, self.option)
-        return bool(ok), np.linalg.inv(T_cur_prev if ok else guess_cur_prev)
+        ok = bool(ok) and bool(np.all(np.isfinite(T_cur_prev)))
+        return ok, np.linalg.inv(T_cur_prev if ok else guess_cur_prev)
 
 
 class OpenCVPeer:
@@ -318,10 +320,11 @@ def _peer_odometry(seq, out: pathlib.Path, peer) -> dict:
         t0 = time.perf_counter()
         ok, T_prev_cur = peer.relative_pose(prev, cur, guess)
         ms.append(1000 * (time.perf_counter() - t0))
-        if ok:
+        pose = np.asarray(Pose.from_matrix(jnp.asarray(T_w @ T_prev_cur, jnp.float32)).to_vector()) if ok else None
+        if pose is not None and np.all(np.isfinite(pose)):
             vel = T_prev_cur
             T_w = T_w @ vel
-            writer.write(seq.timestamps[i], np.asarray(Pose.from_matrix(jnp.asarray(T_w, jnp.float32)).to_vector()))
+            writer.write(seq.timestamps[i], pose)
             prev = cur
         else:
             drops += 1

@@ -235,11 +235,11 @@ def test_odometry_benchmark_runs_every_method(tmp_path):
     for m in ("ours_n64", "ours_n1", "ours_adaptive", "ours_n64_depth", "ours_n1_depth", "opencv", "open3d", "open3d_color"):
         assert "error" not in row[m], (m, row[m])
         assert np.isfinite(row[m]["ate_rmse_m"]) and np.isfinite(row[m]["seconds_per_frame"]), (m, row[m])
-        assert row[m]["frame_drop_rate"] == 0.0, (m, row[m])
+        assert row[m]["frame_drop_rate"] == 0.0 or m == "open3d_color", (m, row[m])  # see below
     for m in ("open3d", "open3d_color"):
         assert row[m]["seconds_per_frame"] > 0, (m, row[m])  # tracked, not a stand-in
-    # the hybrid term tracks this tiny sequence; the colour term alone diverges on it (metres off), so
-    # its ATE is only required to be a real number above
+    # the hybrid term tracks this tiny sequence; the colour term alone diverges on it (metres off, or a
+    # non-finite pose Open3D reports as a success: a dropped frame), so its ATE need only be a number
     assert row["open3d"]["ate_rmse_m"] < 0.1, row["open3d"]
     assert row["ours_n64"]["ate_rmse_m"] < 0.02
     table = format_odometry_table(res)

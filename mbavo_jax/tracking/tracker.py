@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import time
 
 import jax
@@ -142,7 +143,9 @@ def _n_for_level(config: TrackerConfig, blur0: float, level: int) -> int:
     return max(config.n >> level, min(config.n_coarse_min, config.n))
 
 
+@functools.lru_cache(maxsize=256)
 def _level_settings(config: TrackerConfig, level: int, n: int) -> LevelSettings:
+    """A level's solver settings, built (and copied to the device) once per config, level and n."""
     f = lambda v: jnp.float32(v)
     return LevelSettings(f(config.huber), f(config.outlier_sigma), f(config.rtol), f(config.atol), n=n, jacobian=config.jacobian,
                          max_steps=config.max_steps[level], rigid=not config.blur_aware, affine=config.affine,
@@ -153,12 +156,25 @@ def _depth_term(keyframe: Keyframe, depth_pyr, level: int, config: TrackerConfig
     """The level's depth term, when the frame's depth is given and the level is fine enough."""
     if depth_pyr is None or level >= config.depth_levels:
         return None
+    return DepthTerm(depth_pyr[level], *keyframe.depth_points[level].on_device, *_depth_weights(config))
+
+
+@functools.lru_cache(maxsize=16)
+def _depth_weights(config: TrackerConfig) -> tuple:
+    """The depth term's weight, Huber threshold, outlier cut, edge fraction and σ model, on the device once."""
     f = lambda v: jnp.float32(v)
-    return DepthTerm(depth_pyr[level], *keyframe.depth_points[level].on_device, f(config.depth_weight), f(config.depth_huber),
-                     f(config.depth_outlier), f(config.depth_edge), jnp.asarray(config.depth_sigma, jnp.float32))
+    return (f(config.depth_weight), f(config.depth_huber), f(config.depth_outlier), f(config.depth_edge),
+            jnp.asarray(config.depth_sigma, jnp.float32))
+
+
+@functools.lru_cache(maxsize=16)
+def _prior_scales(config: TrackerConfig) -> tuple:
+    """σ_I, min_rad and rel of the exposure-motion prior, on the device once."""
+    return jnp.float32(config.blur_prior), jnp.float32(config.blur_prior_min_rad), jnp.float32(config.blur_prior_rel)
 
 
 def _level_report(level: int, n: int, res, depth_term: bool) -> dict:
+    res = jax.device_get(res)  # one device-to-host copy per level
     return dict(level=level, n=n, rms=float(res.rms), rms_init=float(res.rms_init), nrms=float(res.nrms), valid=int(res.valid),
                 converged=bool(res.converged), steps=int(res.steps), depth_term=depth_term)
 
@@ -169,8 +185,7 @@ def _coarse_to_fine(keyframe: Keyframe, pyr, init: ExposureTrajectory, config: T
     traj, ab, per_level = init, jnp.zeros(2, jnp.float32), []
     prior = None
     if config.blur_aware:  # the prior pulls the exposure motion towards the initial guess's
-        prior = (exposure_motion(init), jnp.float32(config.blur_prior), jnp.float32(config.blur_prior_min_rad),
-                 jnp.float32(config.blur_prior_rel))
+        prior = (exposure_motion(init), *_prior_scales(config))
     else:  # classic direct alignment: one pose, start = end = the initial mid-exposure pose
         traj = ExposureTrajectory(init.middle(), init.middle())
     for level in reversed(range(config.levels)):

@@ -23,7 +23,7 @@ import numpy as np
 import yaml
 
 from . import tracking
-from .config import PRESETS, BenchConfig, EvalConfig, RunConfig, SynthConfig, TrackerConfig, calibration_of
+from .config import PRESETS, BenchConfig, EvalConfig, OdometryConfig, RunConfig, SynthConfig, TrackerConfig, calibration_of
 from .datasets import open_sequence
 from .errors import DataError, MbavoError
 from .evaluation import evaluate_run
@@ -143,10 +143,12 @@ def _errors(kf: Keyframe, est: ExposureTrajectory, gt: ExposureTrajectory):
 
 
 def _pairs(seq, frames: int):
+    """(index, sharp keyframe, its depth, next frame, constant-velocity guess, true path) per pair; the
+    guess's exposure is the recorded one, or without metadata ``odometry.exposure_guess`` of the interval."""
     _, mids = seq.groundtruth
     _, S, E = seq.exposure_paths
-    tau = float(seq.exposures[0]) if seq.exposures is not None else 0.0
     dt = float(np.median(np.diff(seq.timestamps)))
+    tau = float(seq.exposures[0]) if seq.exposures is not None else OdometryConfig().exposure_guess * dt
     for k in range(1, min(len(seq) - 1, frames + 1)):
         sharp_path = pathlib.Path(seq[k].path).parent.parent / "sharp" / pathlib.Path(seq[k].path).name
         T_w_ref = _P(mids[k])
@@ -266,21 +268,41 @@ def format_tracking_table(s: dict) -> str:
     return "\n".join(lines)
 
 
-def _bench_data(preset: str, cfg: BenchConfig, frames: int, quiet: bool = False, depth_model: str = "exact") -> pathlib.Path:
-    """The generated sequence of a preset (``runs/bench_<preset>_<w>x<h>_seed<s>[_sensor]``), made
-    again when missing, shorter than ``frames`` or older than the depth noise record in camera.yaml."""
+def _bench_data(preset: str, cfg: BenchConfig, frames: int, quiet: bool = False, depth_model: str = "exact",
+                scene: str = "room") -> pathlib.Path:
+    """The generated sequence of a preset (``runs/bench_<preset>[_<scene>]_<w>x<h>_seed<s>[_sensor]``),
+    made again when missing, shorter than ``frames`` or older than the depth noise record in camera.yaml."""
     from .synthetic import generate_sequence
 
     if preset not in PRESETS:
         raise MbavoError(f"unknown blur preset '{preset}' (choose from {', '.join(PRESETS)})")
     suffix = "" if depth_model == "exact" else f"_{depth_model}"
-    data = pathlib.Path("runs") / f"bench_{preset}_{cfg.width}x{cfg.height}_seed{cfg.seed}{suffix}"
+    label = preset if scene == "room" else f"{preset}_{scene}"
+    data = pathlib.Path("runs") / f"bench_{label}_{cfg.width}x{cfg.height}_seed{cfg.seed}{suffix}"
     if (not (data / "exposure.txt").is_file() or len(open_sequence(data)) < frames
             or "depth_sigma" not in open_sequence(data).meta):
         synth = SynthConfig(**{**PRESETS[preset], "frames": frames, "width": cfg.width, "height": cfg.height, "seed": cfg.seed,
-                               "depth_model": depth_model})
+                               "depth_model": depth_model, "scene": scene})
         generate_sequence(synth, data, progress=not quiet)
     return data
+
+
+def _with_hidden_exposure(seqs: dict, names: str) -> dict:
+    """``seqs`` plus, for each of ``names`` (or 'all'), ``<name>_noexp``: the same images with the
+    exposure metadata removed (``synthetic.exposure_hidden_copy``, next to the data)."""
+    from .synthetic import exposure_hidden_copy
+
+    chosen = list(seqs) if names.strip() == "all" else [n for n in names.split(",") if n]
+    unknown = [n for n in chosen if n not in seqs]
+    if unknown:
+        raise MbavoError(f"bench.hide_exposure: no sequence named {', '.join(unknown)} (have {', '.join(seqs)})")
+    out = {}
+    for name, path in seqs.items():
+        out[name] = path
+        if name in chosen:
+            path = pathlib.Path(path)
+            out[f"{name}_noexp"] = exposure_hidden_copy(path, path.parent / f"{path.name}_noexp")
+    return out
 
 
 def main_tracking(cfg: BenchConfig, data=None, fmt: str = "table", quiet: bool = False) -> int:
@@ -289,6 +311,7 @@ def main_tracking(cfg: BenchConfig, data=None, fmt: str = "table", quiet: bool =
         runs = {pathlib.Path(data).name: pathlib.Path(data)}
     else:
         runs = {p: _bench_data(p, cfg, cfg.frames + 2, quiet) for p in cfg.preset.split(",")}
+    runs = _with_hidden_exposure(runs, cfg.hide_exposure)
     results = {name: run_tracking_benchmark(path, cfg.frames, peers=not cfg.no_peers, progress=not quiet,
                                                  peer_depth_max=cfg.peer_depth_max) for name, path in runs.items()}
     if fmt == "json":
@@ -383,7 +406,24 @@ def _run_ours(seq, run: pathlib.Path, cfg: TrackerConfig, progress: bool) -> dic
     with open(run / "frames.csv") as fh:
         track_ms = [float(r["ms"]) for r in csv.DictReader(fh) if r["status"] != "keyframe"]
     return {"ate_rmse_m": _ate(seq, run, config.evaluation), "frame_drop_rate": summ["frame_drop_rate"], "keyframes": summ["keyframes"],
-            "seconds_per_frame": el / max(summ["frames"], 1), "median_track_ms": float(np.median(track_ms)) if track_ms else 0.0}
+            "seconds_per_frame": el / max(summ["frames"], 1), "median_track_ms": float(np.median(track_ms)) if track_ms else 0.0,
+            **_exposure_quality(seq, run, summ)}
+
+
+def _exposure_quality(seq, run: pathlib.Path, summ: dict) -> dict:
+    """How the run had its exposure time (and the estimate), and the median over frames of its
+    exposure paths' length over the true ones (generated sequences)."""
+    from .evaluation import exposure_path_error
+    from .io import read_exposure_file
+
+    out = {k: summ[k] for k in ("exposure", "exposure_ms", "exposure_fraction", "exposure_samples") if k in summ}
+    if seq.exposure_paths is not None:
+        cam = {"fx": float(seq.camera.fx), "fy": float(seq.camera.fy), "cx": float(seq.camera.cx), "cy": float(seq.camera.cy),
+               "width": seq.camera.width, "height": seq.camera.height}
+        ratio = exposure_path_error(seq.exposure_paths, read_exposure_file(run / "exposure.txt"), cam).get("length_ratio")
+        if ratio:
+            out["exposure_length_ratio"] = ratio["median"]
+    return out
 
 
 def _run_peers(seq, out: pathlib.Path, methods, progress: bool, label: str, depth_max: float) -> dict:
@@ -433,6 +473,13 @@ def run_odometry_benchmark(sequences: dict, out_root, progress: bool = True, tra
     return results
 
 
+def _exposure_cell(x: dict) -> str:
+    if "exposure" not in x:
+        return "-"
+    ms = f"{x['exposure_ms']:.1f}" + (f" ({x['exposure_samples']})" if x["exposure"] == "estimate" else "")
+    return ms + (f" | {x['exposure_length_ratio']:.2f}" if "exposure_length_ratio" in x else "")
+
+
 def format_odometry_table(res: dict) -> str:
     """Three tables, one row per method and one column per sequence: ATE (mm), frame-drop rate,
     seconds per frame; then the deblurred keyframes' PSNR/SSIM."""
@@ -456,6 +503,7 @@ def format_odometry_table(res: dict) -> str:
     lines += table("ATE, SE3-aligned RMSE (mm)", lambda x: f"{1000 * x['ate_rmse_m']:.2f}" if "ate_rmse_m" in x else x.get("error", "-")[:15])
     lines += ["", *table("frame-drop rate", lambda x: f"{x['frame_drop_rate']:.2f}" if "frame_drop_rate" in x else "-")]
     lines += ["", *table("seconds per frame: ours = whole loop incl. compilation, keyframes, deblurring [median tracking ms]; peers = median call", ms)]
+    lines += ["", *table("exposure: ms as known or estimated (samples) | estimated path length / true (median over frames)", _exposure_cell)]
     lines += ["", "deblurred keyframes (ours_n64): PSNR dB (blurry input) / SSIM (blurry input)"]
     for n, r in res.items():
         d = r["methods"].get("ours_n64", {}).get("deblur") or {}
@@ -476,11 +524,15 @@ def main_odometry(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> 
         seqs[preset] = _bench_data(preset, cfg, cfg.frames, quiet)
     for preset in filter(None, cfg.sensor_presets.split(",")):
         seqs[f"{preset}_sensor"] = _bench_data(preset, cfg, cfg.frames, quiet, depth_model="sensor")
+    for scene in filter(None, cfg.scenes.split(",")):
+        for preset in filter(None, cfg.scene_presets.split(",")):
+            seqs[f"{preset}_{scene}"] = _bench_data(preset, cfg, cfg.frames, quiet, scene=scene)
     if cfg.tum:
         tum_out = pathlib.Path("runs") / "bench_tum_blurred"
         if not (tum_out / "exposure.txt").is_file():
             blur_real_sequence(open_sequence(cfg.tum), tum_out, blur_px=20.0, progress=not quiet)
         seqs["tum_blurred"] = tum_out
+    seqs = _with_hidden_exposure(seqs, cfg.hide_exposure)
     root = pathlib.Path(cfg.out)
     res = run_odometry_benchmark(seqs, root, progress=not quiet, depth_weight=cfg.depth_weight, methods=methods,
                                  peer_depth_max=cfg.peer_depth_max)

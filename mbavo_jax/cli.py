@@ -49,7 +49,7 @@ def _cmd_synth(args) -> int:
         seq = open_sequence(args.source)
         blur = args.blur_px if args.blur_px is not None else PRESET_BLUR_PX[args.preset]
         summary = blur_real_sequence(seq, args.out, blur_px=blur, n=args.subframes or 64, seed=args.seed or 0,
-                                     noise=args.noise or 0.0, progress=not args.quiet)
+                                     noise=args.noise or 0.0, progress=not args.quiet, exposure_info=args.exposure_info is not False)
     else:
         cfg = from_arguments(SynthConfig, args, PRESETS[args.preset])
         from .synthetic import generate_sequence
@@ -91,7 +91,7 @@ def _cmd_eval(args) -> int:
         est = read_exposure_file(args.estimate)
         cam = read_camera_yaml(args.camera)
         res = ev.exposure_path_error(ref, est, cam, depth=args.depth, max_diff=args.t_max_diff)
-        _print_result(res, args.format, ["n_matched"], nested=("translation_m", "rotation_deg", "reprojection_px"))
+        _print_result(res, args.format, ["n_matched"], nested=("translation_m", "rotation_deg", "reprojection_px", "length_ratio"))
         return 0
     t_ref, p_ref = read_tum_trajectory(args.reference)
     t_est, p_est = read_tum_trajectory(args.estimate)
@@ -192,7 +192,8 @@ def _cmd_deblur(args) -> int:
     frame = seq[args.frame]
     if frame.depth is None:
         raise UserError(f"{seq.path}: deblurring needs depth")
-    source = pathlib.Path(args.exposure) if args.exposure else pathlib.Path(seq.path) / "exposure.txt"
+    gt_file = pathlib.Path(seq.path) / "groundtruth_exposure.txt"  # where a sequence without exposure info keeps its paths
+    source = pathlib.Path(args.exposure) if args.exposure else (gt_file if gt_file.is_file() else gt_file.with_name("exposure.txt"))
     stamps, starts, ends = read_exposure_file(source)
     tol = EvalConfig().t_max_diff
     _, match = associate(np.array([frame.timestamp]), stamps, tol)
@@ -268,7 +269,7 @@ def _print_result(res: dict, fmt: str, extra_keys, nested=()) -> None:
         print(json.dumps(res, indent=2))
         return
     if nested:
-        for k in nested:
+        for k in (k for k in nested if res.get(k)):
             st = res[k]
             print(f"{k:>16}: " + "  ".join(f"{s} {st[s]:.5g}" for s in ("rmse", "mean", "median", "std", "min", "max")))
     else:
@@ -345,7 +346,7 @@ def _add_deblur(sub) -> None:
     p = sub.add_parser("deblur", help="deblur one frame with its exposure path and depth; PSNR/SSIM vs sharp/ if present")
     p.add_argument("sequence")
     p.add_argument("--frame", type=int, required=True, help="frame index")
-    p.add_argument("--exposure", help="exposure file (default: the sequence's exposure.txt; or a 'mbavo track' output)")
+    p.add_argument("--exposure", help="exposure file (default: the sequence's groundtruth_exposure.txt or exposure.txt; or a 'mbavo track' output)")
     p.add_argument("--out", required=True)
     add_arguments(p, DeblurConfig)
     _format_flag(p)

@@ -182,7 +182,14 @@ class OdometryConfig(Settings):
     deblur_first_keyframe: bool = setting(True, "deblur the first keyframe (and one made after drops) once the next frame gives the velocity")
     reset_after_drops: int = setting(3, "consecutive dropped frames before the current frame becomes a keyframe", AT_LEAST_1)
     reset_min_image_std: float = setting(1e-3, "a frame whose intensities vary less than this never becomes a reset keyframe", NONNEG)
-    exposure_s: float = setting(0.0, "exposure time (s) when the sequence records none (0: frames are sharp)", NONNEG)
+    exposure: str = setting("auto", "exposure times: auto (the data's when it records them or exposure_s > 0, else estimated); "
+                            "known (required); estimate (ignore the data's, estimate online); none (frames are sharp)",
+                            choices=("auto", "known", "estimate", "none"))
+    exposure_s: float = setting(0.0, "exposure time (s) to use when the sequence records none (0: not given)", NONNEG)
+    exposure_guess: float = setting(0.5, "estimated exposure: fraction of the frame interval assumed until frames are tracked", FRACTION)
+    exposure_window: int = setting(30, "estimated exposure: weighted median over this many recent samples", AT_LEAST_1)
+    exposure_pair_ratio: float = setting(1.3, "estimated exposure: a sample pairs two raw frames whose speeds differ by this factor", at_least(1.05))
+    exposure_pair_frames: int = setting(6, "estimated exposure: a frame is paired with one of this many recent frames", AT_LEAST_1)
     triptychs: int = setting(3, "blurry / reblurred / deblurred images written for the first deblurred keyframes", NONNEG)
 
 
@@ -250,6 +257,11 @@ class SynthConfig(Settings):
     real_textures: bool = setting(True, "use photos from ../shared/data as textures when present")
     depth_model: str = setting("exact", "exact z-depth, or as a Kinect-class sensor writes it (noise, holes, dropouts)",
                                choices=tuple(DEPTH_SIGMA))
+    scene: str = setting("room", "room: 8x5x9 m, 4 boxes; cluttered: the room with 26 boxes 1.6-5 m away; deep: a 6x4x46 m "
+                         "hall, boxes 2-35 m; distant: every surface 25-80 m away (rotation dominates the blur)",
+                         choices=("room", "cluttered", "deep", "distant"))
+    exposure_info: bool = setting(True, "write the exposure time (camera.yaml exposure_ms, times.txt); false: as TUM/EuRoC/KITTI "
+                                        "data come, with the ground-truth exposure paths kept only as groundtruth_exposure.txt")
 
 
 # Mean blur length at 640x480 (``mbavo synth`` reports it): none 0 px, mild ~5, strong ~20, extreme ~40.
@@ -277,6 +289,10 @@ class BenchConfig(Settings):
     methods: str = setting("", "odometry: comma-separated subset of the methods (default all)")
     depth_weight: float = setting(0.03, "odometry: tracker.depth_weight of the *_depth methods", NONNEG)
     no_peers: bool = setting(False, "skip Open3D and OpenCV")
+    hide_exposure: str = setting("", "also run these sequences (table names, comma-separated, or 'all') with their exposure "
+                                 "metadata removed, as <name>_noexp ('': none)")
+    scenes: str = setting("", "odometry: also generate these scenes (cluttered, deep, distant; comma-separated) at scene_presets")
+    scene_presets: str = setting("strong,extreme", "odometry: the blur presets of the extra scenes")
     peer_depth_max: float = setting(4.0, "depth range (m) of Open3D and OpenCV odometry (their own default; docs/benchmarks.md compares 20 m)", POSITIVE)
 
 

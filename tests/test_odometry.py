@@ -275,16 +275,16 @@ def test_missing_depth_mid_run_is_one_line_error_and_keeps_finished_poses(seq_di
 
 
 def test_keyframe_decision_uses_flow_visibility_and_blur():
-    from mbavo_jax.odometry import needs_keyframe
+    from mbavo_jax.odometry import PointStats, needs_keyframe
 
     odo = OdometryConfig()  # flow 10 % of the width, blur rule off
-    assert not needs_keyframe(50.0, 0.9, 30.0, 640, odo)
-    assert needs_keyframe(70.0, 0.9, 30.0, 640, odo)
-    assert needs_keyframe(10.0, 0.5, 0.0, 640, odo)  # too few points in view
+    assert not needs_keyframe(PointStats(50.0, 0.9, 30.0, 0.0), 640, odo)
+    assert needs_keyframe(PointStats(70.0, 0.9, 30.0, 0.0), 640, odo)
+    assert needs_keyframe(PointStats(10.0, 0.5, 0.0, 0.0), 640, odo)  # too few points in view
     held = OdometryConfig(keyframe_max_blur_px=8.0)
-    assert needs_keyframe(70.0, 0.9, 5.0, 640, held) and not needs_keyframe(70.0, 0.9, 30.0, 640, held)
-    assert needs_keyframe(100.0, 0.9, 30.0, 640, held)  # beyond keyframe_flow_max (15 %): whatever the blur
-    assert needs_keyframe(10.0, 0.5, 30.0, 640, held)
+    assert needs_keyframe(PointStats(70.0, 0.9, 5.0, 0.0), 640, held) and not needs_keyframe(PointStats(70.0, 0.9, 30.0, 0.0), 640, held)
+    assert needs_keyframe(PointStats(100.0, 0.9, 30.0, 0.0), 640, held)  # beyond keyframe_flow_max (15 %): whatever the blur
+    assert needs_keyframe(PointStats(10.0, 0.5, 30.0, 0.0), 640, held)
 
 
 @pytest.mark.slow

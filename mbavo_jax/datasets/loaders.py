@@ -46,8 +46,9 @@ def _first_image_size(path) -> tuple[int, int]:
 
 def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02) -> Sequence:
     """TUM RGB-D layout: ``rgb.txt``, optional ``depth.txt`` (associated within ``max_diff`` s),
-    ``groundtruth.txt``, ``exposure.txt`` and ``times.txt``; camera from ``camera.yaml`` or the
-    TUM calibration named in ``rgb.txt``'s header / the folder name (freiburg1/2/3)."""
+    ``groundtruth.txt``, exposure paths (``groundtruth_exposure.txt``, else ``exposure.txt``) and
+    exposure times (``times.txt``, else camera.yaml's ``exposure_ms``); camera from ``camera.yaml``
+    or the TUM calibration named in ``rgb.txt``'s header / the folder name (freiburg1/2/3)."""
     root = pathlib.Path(path)
     rgb = read_file_list(root / "rgb.txt", "rgb list")
     stamps = np.array([s for _, s, _ in rgb])
@@ -79,7 +80,8 @@ def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02) 
     elif "exposure_ms" in cam_info:
         exposures = np.full(len(stamps), float(cam_info["exposure_ms"]) / 1000.0)
     gt = read_tum_trajectory(root / "groundtruth.txt") if (root / "groundtruth.txt").is_file() else None
-    exp_paths = read_exposure_file(root / "exposure.txt") if (root / "exposure.txt").is_file() else None
+    exp_file = next((root / n for n in ("groundtruth_exposure.txt", "exposure.txt") if (root / n).is_file()), None)
+    exp_paths = read_exposure_file(exp_file) if exp_file is not None else None
 
     def load(i: int) -> Frame:
         img_path = root / names[i]

@@ -2,7 +2,7 @@
 
 from .align import umeyama
 from .associate import associate, interpolate_poses
-from .metrics import aligned_positions, ape, exposure_path_error, frame_drop_rate, rpe, statistics
+from .metrics import aligned_positions, ape, exposure_path_error, exposure_path_lengths, frame_drop_rate, rpe, statistics
 from .poses import pose_matrices, slerp
 from .runs import evaluate_run
 
@@ -16,6 +16,7 @@ __all__ = [
     "statistics",
     "frame_drop_rate",
     "exposure_path_error",
+    "exposure_path_lengths",
     "evaluate_run",
     "pose_matrices",
     "slerp",

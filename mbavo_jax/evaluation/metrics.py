@@ -9,7 +9,7 @@ from .align import umeyama
 from .associate import associate
 from .poses import pose_matrices, slerp
 
-__all__ = ["statistics", "ape", "rpe", "aligned_positions", "frame_drop_rate", "exposure_path_error", "pose_matrices"]
+__all__ = ["statistics", "ape", "rpe", "aligned_positions", "frame_drop_rate", "exposure_path_error", "exposure_path_lengths", "pose_matrices"]
 
 
 def statistics(errors: np.ndarray) -> dict:
@@ -87,6 +87,36 @@ def frame_drop_rate(stamps_frames, stamps_est, max_diff: float = 0.01) -> float:
     return 1.0 - len(i) / len(stamps_frames)
 
 
+def _grid_points(camera: dict, depth: float, grid: int) -> np.ndarray:
+    """A ``grid`` x ``grid`` pixel grid (10-90 % of the image) back-projected at ``depth`` metres."""
+    fx, fy, cx, cy, w, h = (camera[k] for k in ("fx", "fy", "cx", "cy", "width", "height"))
+    u, v = np.meshgrid(np.linspace(0.1 * w, 0.9 * w, grid), np.linspace(0.1 * h, 0.9 * h, grid))
+    return np.stack([(u.ravel() - cx) / fx * depth, (v.ravel() - cy) / fy * depth, np.full(u.size, depth)], 1)
+
+
+def _project(camera: dict, P: np.ndarray, T_cur_ref: np.ndarray) -> np.ndarray:
+    Q = P @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
+    return np.stack([camera["fx"] * Q[:, 0] / Q[:, 2] + camera["cx"], camera["fy"] * Q[:, 1] / Q[:, 2] + camera["cy"]], 1)
+
+
+def _about_middle(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T_mid_start, T_mid_end) 4x4 of a path given as camera-to-world vectors (mid: Eqs. 43-44 at ½)."""
+    mid = np.concatenate([(start[:3] + end[:3]) / 2, slerp(start[3:], end[3:], 0.5)])
+    Tm_inv = np.linalg.inv(pose_matrices(mid[None])[0])
+    return Tm_inv @ pose_matrices(start[None])[0], Tm_inv @ pose_matrices(end[None])[0]
+
+
+def exposure_path_lengths(paths, camera: dict, depth: float = 2.0, grid: int = 8) -> np.ndarray:
+    """Per frame of ``paths`` (stamps, start (N, 7), end (N, 7)), the mean pixel distance between a
+    grid of points at ``depth`` metres (in the mid-exposure frame) seen from the start and end poses."""
+    P = _grid_points(camera, depth, grid)
+    out = []
+    for start, end in zip(paths[1], paths[2]):
+        Ts, Te = _about_middle(np.asarray(start, np.float64), np.asarray(end, np.float64))
+        out.append(np.mean(np.linalg.norm(_project(camera, P, np.linalg.inv(Te)) - _project(camera, P, np.linalg.inv(Ts)), axis=1)))
+    return np.asarray(out)
+
+
 def exposure_path_error(ref, est, camera: dict, depth: float = 2.0, grid: int = 8, max_diff: float = 0.01) -> dict:
     """Start and end pose errors of estimated exposure paths, and their mean reprojection error.
 
@@ -95,35 +125,30 @@ def exposure_path_error(ref, est, camera: dict, depth: float = 2.0, grid: int = 
     is that of T_mid⁻¹ T_start. The reprojection error is the mean pixel distance, over a
     ``grid`` x ``grid`` pixel grid back-projected at ``depth`` metres in the reference mid frame, of
     the points projected with the estimated vs reference start (and end) relative poses.
+    ``length_ratio``: per frame, the estimated path's length over the reference's
+    (:func:`exposure_path_lengths`), for frames whose reference path is 0.5 px or longer.
     """
     i_est, i_ref = associate(est[0], ref[0], max_diff)
     if len(i_est) == 0:
         raise MbavoError("no overlapping timestamps between estimated and reference exposure paths")
-    fx, fy, cx, cy, w, h = (camera[k] for k in ("fx", "fy", "cx", "cy", "width", "height"))
-    u, v = np.meshgrid(np.linspace(0.1 * w, 0.9 * w, grid), np.linspace(0.1 * h, 0.9 * h, grid))
-    P = np.stack([(u.ravel() - cx) / fx * depth, (v.ravel() - cy) / fy * depth, np.full(u.size, depth)], 1)
-
-    def rel(start, end):
-        mid = np.concatenate([(start[:3] + end[:3]) / 2, slerp(start[3:], end[3:], 0.5)])
-        Tm = pose_matrices(mid[None])[0]
-        return np.linalg.inv(Tm) @ pose_matrices(start[None])[0], np.linalg.inv(Tm) @ pose_matrices(end[None])[0]
-
-    def project(T_cur_ref):
-        Q = P @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
-        return np.stack([fx * Q[:, 0] / Q[:, 2] + cx, fy * Q[:, 1] / Q[:, 2] + cy], 1)
-
+    P = _grid_points(camera, depth, grid)
     trans, rot, reproj = [], [], []
     for ie, ir in zip(i_est, i_ref):
-        rs, re_ = rel(ref[1][ir], ref[2][ir])
-        es, ee = rel(est[1][ie], est[2][ie])
+        rs, re_ = _about_middle(np.asarray(ref[1][ir], np.float64), np.asarray(ref[2][ir], np.float64))
+        es, ee = _about_middle(np.asarray(est[1][ie], np.float64), np.asarray(est[2][ie], np.float64))
         for Tr, Te in ((rs, es), (re_, ee)):
             E = np.linalg.inv(Tr) @ Te
             trans.append(np.linalg.norm(E[:3, 3]))
             rot.append(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1))))
-            reproj.append(np.mean(np.linalg.norm(project(np.linalg.inv(Te)) - project(np.linalg.inv(Tr)), axis=1)))
+            reproj.append(np.mean(np.linalg.norm(_project(camera, P, np.linalg.inv(Te)) - _project(camera, P, np.linalg.inv(Tr)), axis=1)))
+    pick = lambda paths, idx: (paths[0][idx], np.asarray(paths[1])[idx], np.asarray(paths[2])[idx])
+    ref_len = exposure_path_lengths(pick(ref, i_ref), camera, depth, grid)
+    est_len = exposure_path_lengths(pick(est, i_est), camera, depth, grid)
+    long = ref_len >= 0.5
     return {
         "n_matched": int(len(i_est)),
         "translation_m": statistics(np.array(trans)),
         "rotation_deg": statistics(np.array(rot)),
         "reprojection_px": statistics(np.array(reproj)),
+        "length_ratio": statistics(est_len[long] / ref_len[long]) if long.any() else {},
     }

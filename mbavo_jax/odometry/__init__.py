@@ -1,10 +1,14 @@
 """Motion-blur-aware visual odometry over a sequence: the loop (``run``), its per-frame state
-(``state``), the RGB-D pipeline's step (``rgbd``) and the run's files (``outputs``)."""
+(``state``), the RGB-D pipeline's step (``rgbd``), the online exposure estimate (``exposure``) and
+the run's files (``outputs``)."""
 
+from .exposure import ExposureEstimate, RawFrame, exposure_mode, pair_sample, pick_pair
 from .outputs import RunOutputs
-from .rgbd import RGBDPipeline, keyframe_stats, needs_keyframe
+from .rgbd import RGBDPipeline, needs_keyframe
+from .stats import PointStats, keyframe_stats
 from .run import resume_state, run_odometry
-from .state import FrameOutcome, KeyframeState, NewKeyframe, PendingDeblur, Pipeline, RunState, Triptych
+from .state import ExposureReport, FrameOutcome, KeyframeState, NewKeyframe, PendingDeblur, Pipeline, RunState, Triptych
 
 __all__ = ["run_odometry", "resume_state", "RGBDPipeline", "RunOutputs", "RunState", "FrameOutcome", "KeyframeState",
-           "NewKeyframe", "PendingDeblur", "Pipeline", "Triptych", "needs_keyframe", "keyframe_stats"]
+           "NewKeyframe", "PendingDeblur", "Pipeline", "Triptych", "ExposureReport", "ExposureEstimate", "PointStats",
+           "RawFrame", "exposure_mode", "pick_pair", "pair_sample", "needs_keyframe", "keyframe_stats"]

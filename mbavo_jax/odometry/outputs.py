@@ -16,11 +16,12 @@ from ..blur import plane_depths_from_keyframe, render_blurry
 from ..geometry import PinholeCamera, Pose
 from ..image import delinearize, linearize
 from ..io import TrajectoryWriter
-from .state import FrameOutcome, Triptych
+from .state import ExposureReport, FrameOutcome, Triptych
 
 __all__ = ["RunOutputs", "CSV_COLUMNS", "keyframe_image_path", "read_keyframe_image"]
 
-CSV_COLUMNS = ["index", "timestamp", "status", "rms", "n_finest", "blur_px", "hypothesis", "ms", "keyframe"]
+CSV_COLUMNS = ["index", "timestamp", "status", "rms", "n_finest", "blur_px", "hypothesis", "ms", "keyframe",
+               "exposure", "exposure_ms", "exposure_fraction", "sample_s", "sample_weight", "sample_dt_s", "speed_px_s"]
 EXPOSURE_HEADER = "timestamp start:tx ty tz qx qy qz qw end:tx ty tz qx qy qz qw (camera-to-world)"
 
 
@@ -39,13 +40,25 @@ def _vec(p: Pose) -> np.ndarray:
     return np.asarray(p.to_vector(), np.float64)
 
 
+def _exposure_cells(e: ExposureReport | None) -> list:
+    """How the exposure is had, its value (ms, fraction of the frame interval) after this frame, and
+    the sample this frame gave the estimate (exposure s, weight, frame interval s) and its point
+    speed kept for pairing; blank: none."""
+    if e is None:
+        return [""] * 7
+    sample = [repr(float(v)) for v in e.sample] if e.sample else ["", "", ""]  # exact, for --resume
+    return [e.mode, f"{1000 * e.seconds:.4f}", "" if e.fraction is None else f"{e.fraction:.4f}", *sample,
+            "" if e.speed is None else repr(e.speed)]
+
+
 def _csv_row(o: FrameOutcome) -> list:
     if o.result is None and o.status == "keyframe":  # the first frame
-        return [o.index, f"{o.timestamp:.6f}", "keyframe", 0.0, 0, 0.0, "", 0.0, 1]
+        return [o.index, f"{o.timestamp:.6f}", "keyframe", 0.0, 0, 0.0, "", 0.0, 1, *_exposure_cells(o.exposure)]
     diag = o.result.diagnostics if o.result is not None else {}
     levels = diag.get("levels") or [{}]
     return [o.index, f"{o.timestamp:.6f}", o.status, f"{diag.get('rms', float('nan')):.5f}", levels[-1].get("n", 0),
-            f"{diag.get('blur_px', 0.0):.2f}", diag.get("hypothesis", ""), f"{1000 * o.track_seconds:.1f}", int(o.new_keyframe is not None)]
+            f"{diag.get('blur_px', 0.0):.2f}", diag.get("hypothesis", ""), f"{1000 * o.track_seconds:.1f}", int(o.new_keyframe is not None),
+            *_exposure_cells(o.exposure)]
 
 
 class RunOutputs:

@@ -12,51 +12,35 @@ becomes a keyframe at the last good pose. No file I/O happens here.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from ..blur import blur_lengths
-from ..config import OdometryConfig, RunConfig
+from ..config import OdometryConfig, RunConfig, TrackerConfig
 from ..deblur import choose_deblur_n, deblur, exposure_blur_px
 from ..geometry import ExposureTrajectory, PinholeCamera, Pose
-from ..masked import count, masked_mean
 from ..tracking import Keyframe, Status, TrackResult, constant_velocity_guess, exposure_from_velocity, track
-from .state import FrameOutcome, KeyframeState, NewKeyframe, PendingDeblur, RunState, Triptych
+from .exposure import ExposureEstimate, RawFrame, exposure_mode, pair_sample, pick_pair
+from .stats import PointStats, keyframe_stats
+from .state import ExposureReport, FrameOutcome, KeyframeState, NewKeyframe, PendingDeblur, RunState, Triptych
 
-__all__ = ["RGBDPipeline", "needs_keyframe", "keyframe_stats"]
-
-
-@jax.jit
-def _keyframe_stats(cam, pixels, depths, valid, traj: ExposureTrajectory):
-    """Mean flow (pixels) of the keyframe's points into the frame at mid-exposure, the fraction
-    that project inside it, and their mean blur length (one program per sequence)."""
-    X = jax.vmap(cam.backproject)(pixels, depths)
-    Xc = jax.vmap(traj.middle().inverse().apply)(X)
-    x = jax.vmap(cam.project)(jnp.where(Xc[:, 2:3] > 1e-6, Xc, jnp.array([0.0, 0.0, 1.0])))
-    inside = valid & (Xc[:, 2] > 1e-6) & jax.vmap(cam.in_image)(x)
-    flow = masked_mean(jnp.linalg.norm(x - pixels, axis=1), inside)
-    lengths, ok = blur_lengths(cam, pixels, depths, traj)
-    ok = ok & valid
-    return flow, inside.sum().astype(flow.dtype) / count(valid, flow.dtype), masked_mean(lengths, ok)
+__all__ = ["RGBDPipeline", "PointStats", "needs_keyframe", "keyframe_stats"]
 
 
-def keyframe_stats(kf: Keyframe, traj: ExposureTrajectory) -> tuple[float, float, float]:
-    """(flow px, visible fraction, blur px) of the keyframe's points for a tracked exposure path."""
-    pts = kf.points[0]
-    if pts.count == 0:
-        return float("inf"), 0.0, 0.0
-    return tuple(float(v) for v in jax.device_get(_keyframe_stats(kf.cameras[0], *pts.on_device, traj)))
-
-
-def needs_keyframe(flow_px: float, visible: float, blur_px: float, width: int, odo: OdometryConfig) -> bool:
+def needs_keyframe(stats: PointStats, width: int, odo: OdometryConfig) -> bool:
     """Mean point flow beyond ``keyframe_flow`` of the width on a frame blurred at most
     ``keyframe_max_blur_px``, or beyond ``keyframe_flow_max`` whatever its blur, or fewer than
     ``keyframe_min_visible`` of the keyframe's points in view."""
-    return bool(visible < odo.keyframe_min_visible or flow_px > odo.keyframe_flow_max * width
-                or (flow_px > odo.keyframe_flow * width and blur_px <= odo.keyframe_max_blur_px))
+    flow = stats.flow_px
+    return bool(stats.visible < odo.keyframe_min_visible or flow > odo.keyframe_flow_max * width
+                or (flow > odo.keyframe_flow * width and stats.blur_px <= odo.keyframe_max_blur_px))
+
+
+@functools.lru_cache(maxsize=16)
+def _prior_off(config: TrackerConfig) -> TrackerConfig:
+    """``config`` without the exposure-motion prior."""
+    return dataclasses.replace(config, blur_prior=0.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,16 +60,39 @@ class RGBDPipeline:
 
     # ------------------------------------------------------------------------------ the pieces
 
-    def exposure_of(self, frame) -> float:
-        """The frame's exposure time: recorded in the data, else ``odometry.exposure_s``."""
-        return frame.exposure if frame.exposure is not None else self.config.odometry.exposure_s
+    def exposure_mode(self, frame) -> str:
+        """How this frame's exposure time is had: ``known``, ``estimate`` or ``none`` (also for a
+        tracker that is not blur-aware: it has no use for one)."""
+        mode = exposure_mode(self.config.odometry, frame.exposure is not None)
+        return mode if self.config.tracker.blur_aware or mode != "estimate" else "none"
+
+    def estimate(self, state: RunState) -> ExposureEstimate:
+        """The running exposure estimate (a fresh one before the first sample)."""
+        odo = self.config.odometry
+        return state.exposure or ExposureEstimate(odo.exposure_guess, odo.exposure_window)
+
+    def exposure_of(self, state: RunState, frame, frame_dt: float) -> float:
+        """The frame's exposure time (s): recorded in the data (else ``odometry.exposure_s``) when
+        known, the running estimate (``frame_dt``: the frame interval) when estimated, else 0."""
+        mode = self.exposure_mode(frame)
+        if mode == "known":
+            return frame.exposure if frame.exposure is not None else self.config.odometry.exposure_s
+        return self.estimate(state).seconds(frame_dt) if mode == "estimate" else 0.0
 
     def pending_of(self, frame) -> PendingDeblur | None:
         """What deblurring a keyframe made from ``frame`` without an exposure path needs, or None
         when it will not be deblurred."""
         cfg = self.config
-        wait = cfg.odometry.deblur_first_keyframe and cfg.tracker.blur_aware and self.exposure_of(frame) > 0 and frame.depth is not None
-        return PendingDeblur(frame.image, frame.depth, self.exposure_of(frame)) if wait else None
+        exposure = None if self.exposure_mode(frame) == "estimate" else self.exposure_of(RunState(), frame, 0.0)
+        wait = cfg.odometry.deblur_first_keyframe and cfg.tracker.blur_aware and frame.depth is not None and exposure != 0.0
+        return PendingDeblur(frame.image, frame.depth, exposure) if wait else None
+
+    def tracker_config(self, frame, informed: bool) -> TrackerConfig:
+        """The tracker's settings for this frame: as configured, but with an estimated exposure the
+        exposure-motion prior is off while the guess carries no velocity (``informed`` false), so
+        that nothing pins a frame sharp for want of knowledge."""
+        tracker = self.config.tracker
+        return tracker if informed or self.exposure_mode(frame) != "estimate" else _prior_off(tracker)
 
     def keyframe_without_path(self, state: RunState, frame, T_world_kf: Pose) -> tuple[RunState, NewKeyframe]:
         """A keyframe at ``T_world_kf`` from a frame whose exposure path is not known yet: used as it
@@ -99,29 +106,33 @@ class RGBDPipeline:
         T_w = Pose.identity()
         state, new = self.keyframe_without_path(state, frame, T_w)
         state = state.replace(mids=((frame.timestamp, T_w),), tracked=state.tracked + 1)
-        return state, FrameOutcome(index, frame.timestamp, "keyframe", T_w, T_w, T_w, new_keyframe=new)
+        report = self.exposure_report(state, frame, None, 0.0)
+        return state, FrameOutcome(index, frame.timestamp, "keyframe", T_w, T_w, T_w, new_keyframe=new, exposure=report)
 
-    def predict(self, state: RunState, frame) -> ExposureTrajectory:
+    def predict(self, state: RunState, frame) -> tuple[ExposureTrajectory, bool]:
         """The frame's exposure path in the keyframe, by constant velocity from the last two mid
-        poses, or the last pose (no motion) when the velocity is not known."""
+        poses, or the last pose (no motion) when the velocity is not known; and whether it was known."""
         T_w_kf = state.keyframe.T_world_kf
         if len(state.mids) >= 2:
             (ta, Ta), (tb, Tb) = state.mids[-2], state.mids[-1]
-            return constant_velocity_guess(T_w_kf, Ta, Tb, max(tb - ta, 1e-6), self.exposure_of(frame), frame.timestamp - tb)
+            dt = max(tb - ta, 1e-6)
+            return constant_velocity_guess(T_w_kf, Ta, Tb, dt, self.exposure_of(state, frame, dt), frame.timestamp - tb), True
         last = T_w_kf.inverse().compose(state.mids[-1][1])
-        return ExposureTrajectory(last, last)
+        return ExposureTrajectory(last, last), False
 
     def _track(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
         replaced, t0 = (), time.perf_counter()
         if frame.depth is not None and not np.isfinite(frame.depth).any():
             result = None  # nothing to place the frame with
         else:
-            result = track(state.keyframe.keyframe, frame.image, self.predict(state, frame), self.config.tracker, depth=frame.depth)
+            init, informed = self.predict(state, frame)
+            first = result = track(state.keyframe.keyframe, frame.image, init, self.tracker_config(frame, informed), depth=frame.depth)
             if state.pending is not None and result.status.ok:
                 state, result, replaced = self.deblur_pending(state, frame, result)
+                informed = informed or result is not first  # tracked again from a velocity
         track_seconds = time.perf_counter() - t0
         if result is not None and result.status.ok:
-            state, outcome = self._tracked(state, frame, index, result)
+            state, outcome = self._tracked(state, frame, index, result, informed)
         else:
             state, outcome = self._dropped(state, frame, index, result)
         return state, dataclasses.replace(outcome, replaced_images=replaced, track_seconds=track_seconds)
@@ -138,32 +149,64 @@ class RGBDPipeline:
         result, replaced images). A keyframe blurred less than ``deblur_min_blur_px`` stays as it
         is; when the second tracking fails, the first result is kept (with the deblurred keyframe)."""
         kf, pending = state.keyframe, state.pending
+        exposure = pending.exposure if pending.exposure is not None else self.estimate(state).seconds(frame.timestamp - kf.stamp)
         state = state.replace(pending=None)
         mid = result.trajectory.middle()  # T_kf_mid of this frame: the motion over frame.timestamp - stamp
-        path = exposure_from_velocity(mid, max(frame.timestamp - kf.stamp, 1e-6), pending.exposure)
+        path = exposure_from_velocity(mid, max(frame.timestamp - kf.stamp, 1e-6), exposure)
         if exposure_blur_px(pending.depth, self.camera, path)[0] <= self.config.odometry.deblur_min_blur_px:
             return state, result, ()
         sharp, _ = self.deblurred(pending.image, pending.depth, path)
         keyframe = Keyframe.create(sharp, pending.depth, self.camera, self.config.tracker)
         state = state.replace(keyframe=dataclasses.replace(kf, keyframe=keyframe))
         init = ExposureTrajectory(mid.compose(path.start), mid.compose(path.end))  # same velocity: T_kf_mid ∘ path
-        again = track(keyframe, frame.image, init, self.config.tracker, depth=frame.depth)
+        again = track(keyframe, frame.image, init, self.tracker_config(frame, True), depth=frame.depth)
         return state, (again if again.status.ok else result), ((kf.stamp, sharp),)
 
-    def _tracked(self, state: RunState, frame, index: int, result: TrackResult) -> tuple[RunState, FrameOutcome]:
+    def exposure_report(self, state: RunState, frame, sample: tuple[float, float] | None, dt: float) -> ExposureReport:
+        """This frame's exposure record; when estimated, ``sample`` (or None) is added to
+        ``state.exposure`` and the report carries the result."""
+        mode = self.exposure_mode(frame)
+        if mode != "estimate":
+            seconds = self.exposure_of(state, frame, dt)
+            return ExposureReport(mode, seconds, seconds / dt if dt > 0 else None)
+        est = self.estimate(state).add(sample, dt)
+        return ExposureReport(mode, est.seconds(dt), est.fraction(), None if sample is None else (*sample, dt), est)
+
+    def exposure_pairing(self, state: RunState, frame, T_w_mid: Pose, stats: PointStats, dt: float):
+        """With an estimated exposure: (recent raw frames with this one, a sample from the pair of
+        this frame and a recent one whose speeds differ most, or None)."""
+        if self.exposure_mode(frame) != "estimate" or dt <= 0:
+            return state.recent, None
+        odo = self.config.odometry
+        current = RawFrame(frame.timestamp, frame.image, frame.depth, T_w_mid, state.mids[-1][1], dt, stats.motion_px / dt)
+        pair, sample = pick_pair(state.recent, current, odo.exposure_pair_ratio), None
+        if pair is not None:
+            guess = self.estimate(state).seconds(pair[1].dt)
+            sample = pair_sample(*pair, self.camera, self.config.tracker, guess, odo.exposure_pair_ratio)
+        return (*state.recent, current)[-odo.exposure_pair_frames:], sample
+
+    def _tracked(self, state: RunState, frame, index: int, result: TrackResult, informed: bool) -> tuple[RunState, FrameOutcome]:
+        """A tracked frame: its poses, a sample for an estimated exposure, perhaps a new keyframe."""
         T_w_kf, traj = state.keyframe.T_world_kf, result.trajectory
         T_w_mid = T_w_kf.compose(traj.middle())
-        state = state.replace(mids=(*state.mids, (frame.timestamp, T_w_mid))[-2:], tracked=state.tracked + 1, consecutive_drops=0)
-        flow, visible, blur = keyframe_stats(state.keyframe.keyframe, traj)
+        T_w_prev, dt = state.mids[-1][1], frame.timestamp - state.mids[-1][0]
+        stats = keyframe_stats(state.keyframe.keyframe, traj, T_w_kf.inverse().compose(T_w_prev))
+        recent, sample = self.exposure_pairing(state, frame, T_w_mid, stats, dt) if informed else (state.recent, None)
+        report = self.exposure_report(state, frame, sample, dt)
+        if recent and recent[-1].stamp == frame.timestamp:
+            report = dataclasses.replace(report, speed=recent[-1].speed)
+        state = state.replace(mids=(*state.mids, (frame.timestamp, T_w_mid))[-2:], tracked=state.tracked + 1, consecutive_drops=0,
+                              exposure=report.estimate or state.exposure, recent=recent)
         new = None
-        if needs_keyframe(flow, visible, blur, self.camera.width, self.config.odometry) and frame.depth is not None:
-            state, new = self._new_keyframe(state, frame, traj, T_w_mid, blur)
+        if needs_keyframe(stats, self.camera.width, self.config.odometry) and frame.depth is not None:
+            state, new = self._new_keyframe(state, frame, traj, T_w_mid, stats.blur_px)
         outcome = FrameOutcome(index, frame.timestamp, result.status.name.lower(), T_w_mid, T_w_kf.compose(traj.start),
-                               T_w_kf.compose(traj.end), new_keyframe=new, result=result)
+                               T_w_kf.compose(traj.end), new_keyframe=new, result=result, exposure=report)
         return state, outcome
 
     def _new_keyframe(self, state: RunState, frame, traj: ExposureTrajectory, T_w_mid: Pose, blur: float):
-        """This frame as the next keyframe, deblurred along its path when blurred enough."""
+        """This frame as the next keyframe, deblurred along its tracked exposure path ``traj`` (mean
+        blur ``blur`` px) when blurred enough."""
         sharp, triptych = frame.image, None
         if blur > self.config.odometry.deblur_min_blur_px and self.config.tracker.blur_aware:
             sharp, n = self.deblurred(frame.image, frame.depth, traj)
@@ -185,4 +228,5 @@ class RGBDPipeline:
             state, new = self.keyframe_without_path(state, frame, state.mids[-1][1])
             state = state.replace(consecutive_drops=0)
         status = (result.status if result is not None else Status.TOO_FEW_POINTS).name.lower()
-        return state, FrameOutcome(index, frame.timestamp, status, new_keyframe=new, result=result)
+        report = self.exposure_report(state, frame, None, 0.0)
+        return state, FrameOutcome(index, frame.timestamp, status, new_keyframe=new, result=result, exposure=report)

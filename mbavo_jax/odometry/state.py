@@ -15,8 +15,9 @@ import numpy as np
 from ..config import RunConfig
 from ..geometry import ExposureTrajectory, Pose
 from ..tracking import Keyframe, TrackResult
+from .exposure import ExposureEstimate, RawFrame
 
-__all__ = ["KeyframeState", "PendingDeblur", "RunState", "NewKeyframe", "Triptych", "FrameOutcome", "Pipeline"]
+__all__ = ["KeyframeState", "PendingDeblur", "RunState", "NewKeyframe", "Triptych", "ExposureReport", "FrameOutcome", "Pipeline"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,11 +32,12 @@ class KeyframeState:
 @dataclasses.dataclass(frozen=True)
 class PendingDeblur:
     """A keyframe made without an exposure path (the first frame, a reset after drops): its raw
-    image, depth and exposure time, until the next tracked frame gives the camera's velocity."""
+    image, depth and exposure time (None: estimated), until the next tracked frame gives the
+    camera's velocity."""
 
     image: np.ndarray
     depth: np.ndarray
-    exposure: float
+    exposure: float | None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,6 +52,8 @@ class RunState:
     consecutive_drops: int = 0
     keyframes: int = 0
     triptychs: int = 0
+    exposure: ExposureEstimate | None = None  # when the exposure time is estimated
+    recent: tuple[RawFrame, ...] = ()  # the last raw frames, for the estimate's pairs
 
     def replace(self, **changes) -> "RunState":
         return dataclasses.replace(self, **changes)
@@ -77,6 +81,20 @@ class NewKeyframe:
 
 
 @dataclasses.dataclass(frozen=True)
+class ExposureReport:
+    """A frame's exposure time: how it is known (``known``, ``estimate``, ``none``), its value
+    after this frame (seconds, and as a fraction of the frame interval when that is known), and
+    the sample this frame added to the estimate (exposure s, weight, frame interval s) if any."""
+
+    mode: str
+    seconds: float
+    fraction: float | None = None
+    sample: tuple[float, float, float] | None = None
+    estimate: ExposureEstimate | None = None  # the running estimate after this frame (estimated mode)
+    speed: float | None = None  # the frame's point speed (px/s) that pairing compares (estimated mode)
+
+
+@dataclasses.dataclass(frozen=True)
 class FrameOutcome:
     """What one frame produced: its status, its poses when tracked (camera-to-world), a keyframe
     made at it, keyframe images replaced by deblurred ones, and the tracker's diagnostics."""
@@ -90,6 +108,7 @@ class FrameOutcome:
     new_keyframe: NewKeyframe | None = None
     replaced_images: tuple[tuple[float, np.ndarray], ...] = ()  # (stamp, deblurred image) of an earlier keyframe
     result: TrackResult | None = None
+    exposure: ExposureReport | None = None
     seconds: float = 0.0  # the whole step
     track_seconds: float = 0.0  # tracking (and re-tracking after a pending deblur) only
 

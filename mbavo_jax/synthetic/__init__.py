@@ -3,8 +3,9 @@
 ``SynthConfig``, ``PRESETS`` and ``DEPTH_SIGMA`` live in :mod:`mbavo_jax.config`; they are re-exported here."""
 
 from ..config import DEPTH_SIGMA, PRESETS, SynthConfig
-from .generator import blur_real_sequence, camera_path, generate_sequence, mean_blur_length, sensor_depth
-from .scene import Scene, default_scene, render_exposure, scene_arrays
+from .generator import blur_real_sequence, camera_path, depth_scale, generate_sequence, mean_blur_length, sensor_depth
+from .metadata import exposure_hidden_copy, hide_exposure_info
+from .scene import SCENES, Scene, default_scene, make_scene, render_exposure, scene_arrays
 
 __all__ = [
     "PRESETS",
@@ -14,9 +15,14 @@ __all__ = [
     "camera_path",
     "mean_blur_length",
     "sensor_depth",
+    "depth_scale",
+    "hide_exposure_info",
+    "exposure_hidden_copy",
     "DEPTH_SIGMA",
     "Scene",
     "default_scene",
+    "make_scene",
+    "SCENES",
     "render_exposure",
     "scene_arrays",
 ]

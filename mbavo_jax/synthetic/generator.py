@@ -2,10 +2,10 @@
 
 Two sources:
 
-* ``generate_sequence``: the ray-cast room of :mod:`.scene` along a smooth camera path. Each blurry
-  frame is the mean of ``subframes`` renders along the *true* (curved) path during the exposure, in
-  linear radiance; the camera response ``I = r^(1/γ)`` is applied after, then noise and 8-bit
-  quantisation.
+* ``generate_sequence``: a ray-cast scene of :mod:`.scene` (``SynthConfig.scene``) along a smooth
+  camera path. Each blurry frame is the mean of ``subframes`` renders along the *true* (curved)
+  path during the exposure, in linear radiance; the camera response ``I = r^(1/γ)`` is applied
+  after, then noise and 8-bit quantisation.
 * ``blur_real_sequence``: a real RGB-D clip blurred with the core blur model along a known exposure
   path (symmetric about each frame's own pose, so the clip's ground truth stays the mid-exposure
   pose).
@@ -14,9 +14,12 @@ Depth is the mid-exposure z-depth, either exact (``depth_model="exact"``, 16-bit
 structured-light sensor would write it (``"sensor"``, :func:`sensor_depth`). camera.yaml records the
 depth noise model (``depth_sigma``) the way it records the response γ, so trackers can weigh depth.
 
-Output folder: ``rgb.txt rgb/ depth.txt depth/ (16-bit, /5000) groundtruth.txt`` (mid-exposure,
-camera-to-world), ``exposure.txt`` (start and end pose), ``times.txt`` (``id timestamp exposure_ms``),
-``sharp/`` (mid-exposure sharp image), ``camera.yaml`` and ``synth.yaml`` (settings and blur stats).
+Output folder: ``rgb.txt rgb/ depth.txt depth/ (16-bit, /depth_scale: 5000 unless the scene is
+deeper than 13 m) groundtruth.txt`` (mid-exposure, camera-to-world), ``exposure.txt`` (start and end
+pose), ``times.txt`` (``id timestamp exposure_ms``), ``sharp/`` (mid-exposure sharp image),
+``camera.yaml`` and ``synth.yaml`` (settings and blur stats). Without exposure information
+(``exposure_info=False``, :func:`.metadata.hide_exposure_info`) there is no times.txt nor
+``exposure_ms``, and the exposure paths are in ``groundtruth_exposure.txt``.
 """
 
 from __future__ import annotations
@@ -41,9 +44,11 @@ from ..geometry.trajectory import ExposureTrajectory
 from ..image import delinearize
 from ..io import write_camera_yaml, write_exposure_file, write_tum_trajectory
 from ..progress import bar
-from .scene import default_scene, render_exposure, scene_arrays
+from .metadata import GROUNDTRUTH_EXPOSURE, hide_exposure_info
+from .scene import CAMERA_CENTRE, Scene, make_scene, render_exposure, scene_arrays
 
-__all__ = ["SynthConfig", "PRESETS", "generate_sequence", "blur_real_sequence", "camera_path", "mean_blur_length", "sensor_depth", "DEPTH_SIGMA"]
+__all__ = ["SynthConfig", "PRESETS", "generate_sequence", "blur_real_sequence", "camera_path", "mean_blur_length", "sensor_depth",
+           "depth_scale", "DEPTH_SIGMA"]
 
 
 def camera_path(t, speed: float, rotation_rate: float, seed: int = 0) -> Pose:
@@ -121,9 +126,19 @@ def _write_gray(path, img01):
     cv2.imwrite(str(path), np.clip(np.round(np.asarray(img01) * 255.0), 0, 255).astype(np.uint8))
 
 
-def _write_depth(path, depth_m):
+def _write_depth(path, depth_m, scale: float = 5000.0):
     d = np.nan_to_num(np.asarray(depth_m), nan=0.0)
-    cv2.imwrite(str(path), np.clip(np.round(d * 5000.0), 0, 65535).astype(np.uint16))
+    cv2.imwrite(str(path), np.clip(np.round(d * scale), 0, 65535).astype(np.uint16))
+
+
+def depth_scale(scene: Scene, margin: float = 1.5) -> float:
+    """16-bit depth units per metre: TUM's 5000 when the farthest box corner (plus ``margin`` for
+    the camera's motion) fits in 65535 units, else the largest multiple of 100 that fits."""
+    boxes = np.asarray(scene.boxes, np.float64)  # (K, 2, 3)
+    pick = np.array(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij")).reshape(3, -1).T  # min/max per axis
+    corners = boxes[:, pick, np.arange(3)]  # (K, 8, 3)
+    far = float(np.linalg.norm(corners - CAMERA_CENTRE, axis=-1).max()) + margin
+    return 5000.0 if far * 5000.0 <= 65535 else float(np.floor(65535.0 / far / 100.0) * 100.0)
 
 
 def _prepare_out(out) -> pathlib.Path:
@@ -133,17 +148,19 @@ def _prepare_out(out) -> pathlib.Path:
             raise MbavoError(f"{out}: exists and is not a previous 'mbavo synth' output; choose an empty folder")
     for sub in ("rgb", "depth", "sharp"):
         (out / sub).mkdir(parents=True, exist_ok=True)
+    (out / GROUNDTRUTH_EXPOSURE).unlink(missing_ok=True)  # a previous output's, written without exposure info
     return out
 
 
 def generate_sequence(cfg: SynthConfig, out, progress: bool = True) -> dict:
-    """Render a blurry sequence into ``out``; returns the summary written to ``synth.yaml``.
-    ``progress``: a progress bar on stderr (when it is a terminal)."""
+    """Render a blurry sequence of ``cfg.scene`` into ``out``; returns the summary written to
+    ``synth.yaml``. ``progress``: a progress bar on stderr (when it is a terminal)."""
     out = _prepare_out(out)
     f = 525.0 * cfg.width / 640.0
     camera = PinholeCamera.create(f, f, (cfg.width - 1) / 2, (cfg.height - 1) / 2, cfg.width, cfg.height)
-    scene = default_scene(cfg.seed, use_real_textures=cfg.real_textures)
+    scene = make_scene(cfg.scene, cfg.seed, use_real_textures=cfg.real_textures)
     arrays = scene_arrays(scene)
+    scale = depth_scale(scene)
     rng = np.random.default_rng(cfg.seed + 1000)
     tau = cfg.exposure_ms / 1000.0
     n_sub = max(1, cfg.subframes if tau > 0 else 1)
@@ -164,7 +181,7 @@ def generate_sequence(cfg: SynthConfig, out, progress: bool = True) -> dict:
         _write_gray(out / "rgb" / name, blurry)
         _write_gray(out / "sharp" / name, sharp)
         depth_out = np.asarray(depth) if cfg.depth_model == "exact" else sensor_depth(np.asarray(depth), rng)
-        _write_depth(out / "depth" / name, depth_out)
+        _write_depth(out / "depth" / name, depth_out, scale)
         start = jax.tree_util.tree_map(lambda a: a[0], poses)
         end = jax.tree_util.tree_map(lambda a: a[-1], poses)
         stamps.append(t_mid)
@@ -174,21 +191,31 @@ def generate_sequence(cfg: SynthConfig, out, progress: bool = True) -> dict:
         blur.append(mean_blur_length(np.asarray(depth), camera, poses, mid))
         pbar.update()
     pbar.close()
-    summary = _write_layout(out, camera, cfg.fps, cfg.exposure_ms, cfg.response_gamma, stamps, stamps, mids, starts, ends, blur, DEPTH_SIGMA[cfg.depth_model])
-    summary.update(source="synthetic room", config=dataclasses.asdict(cfg), textures=list(scene.texture_names))
-    summary["seconds"] = round(time.perf_counter() - t0, 2)
+    summary = _write_layout(out, camera, cfg.fps, cfg.exposure_ms, cfg.response_gamma, stamps, stamps, mids, starts, ends, blur,
+                            DEPTH_SIGMA[cfg.depth_model], scale)
+    summary.update(source=f"synthetic {cfg.scene}", config=dataclasses.asdict(cfg), textures=list(scene.texture_names))
+    return _finish(out, summary, t0, cfg.exposure_info)
+
+
+def _finish(out, summary: dict, t0: float, exposure_info: bool) -> dict:
+    """Write synth.yaml (with the run time and ``exposure_info``), then hide the exposure if asked."""
+    summary.update(exposure_info=exposure_info, seconds=round(time.perf_counter() - t0, 2))
     (out / "synth.yaml").write_text(yaml.safe_dump(summary, sort_keys=False))
+    if not exposure_info:
+        hide_exposure_info(out)
     return summary
 
 
-def _write_layout(out, camera, fps, exposure_ms, gamma, stamps, gt_stamps, mids, starts, ends, blur, depth_sigma) -> dict:
-    """Write the lists, trajectories and camera; ``gt_stamps`` are the frames with ground truth."""
+def _write_layout(out, camera, fps, exposure_ms, gamma, stamps, gt_stamps, mids, starts, ends, blur, depth_sigma,
+                  scale=5000.0) -> dict:
+    """Write the lists, trajectories and camera; ``gt_stamps`` are the frames with ground truth;
+    depth images hold ``scale`` units per metre."""
     names = [f"{t:.6f}.png" for t in stamps]
     with open(out / "rgb.txt", "w") as fh:
         fh.write("# blurry images (mbavo synth)\n# timestamp filename\n")
         fh.writelines(f"{t:.6f} rgb/{n}\n" for t, n in zip(stamps, names))
     with open(out / "depth.txt", "w") as fh:
-        fh.write("# mid-exposure depth, 16-bit, depth/5000 = metres\n# timestamp filename\n")
+        fh.write(f"# mid-exposure depth, 16-bit, depth/{scale:g} = metres\n# timestamp filename\n")
         fh.writelines(f"{t:.6f} depth/{n}\n" for t, n in zip(stamps, names))
     with open(out / "times.txt", "w") as fh:
         fh.write("# id timestamp exposure_ms\n")
@@ -198,7 +225,7 @@ def _write_layout(out, camera, fps, exposure_ms, gamma, stamps, gt_stamps, mids,
     write_camera_yaml(
         out / "camera.yaml",
         fx=float(camera.fx), fy=float(camera.fy), cx=float(camera.cx), cy=float(camera.cy),
-        width=camera.width, height=camera.height, depth_scale=5000.0, exposure_ms=float(exposure_ms),
+        width=camera.width, height=camera.height, depth_scale=float(scale), exposure_ms=float(exposure_ms),
         fps=float(fps), response_gamma=float(gamma), depth_sigma=[float(x) for x in depth_sigma],
     )
     blur = np.asarray(blur)
@@ -248,13 +275,15 @@ def _blur_path(direction: np.ndarray, depth: np.ndarray, cam, blur_px: float) ->
     return _symmetric_path(delta).trajectory
 
 
-def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int = 0, noise: float = 0.0, progress: bool = True) -> dict:
+def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int = 0, noise: float = 0.0, progress: bool = True,
+                       exposure_info: bool = True) -> dict:
     """Blur a real RGB-D sequence along known exposure paths with the core blur model.
 
     For frame k the exposure path is symmetric about the frame's own pose: T_k_start = exp(−δ/2),
     T_k_end = exp(+δ/2) (so its mid-exposure pose is the real pose and the ground truth is the
     clip's). δ follows the real motion direction between neighbouring ground-truth poses (a seeded
     random direction where there is none), scaled so the mean blur is ``blur_px`` pixels.
+    ``exposure_info=False``: no exposure time written (see :func:`.metadata.hide_exposure_info`).
     """
     from ..evaluation.associate import interpolate_poses
 
@@ -301,6 +330,4 @@ def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int =
     summary = _write_layout(out, cam, 30.0, exposure_ms, 1.0, stamps, gt_stamps, mids, starts, ends, blur,
                             seq.meta.get("depth_sigma", DEPTH_SIGMA["sensor"]))  # real RGB-D: Kinect-class unless the source says
     summary.update(source=f"blurred real clip {seq.path}", blur_px_requested=blur_px, n=n, seed=seed)
-    summary["seconds"] = round(time.perf_counter() - t0, 2)
-    (out / "synth.yaml").write_text(yaml.safe_dump(summary, sort_keys=False))
-    return summary
+    return _finish(out, summary, t0, exposure_info)

@@ -1,4 +1,5 @@
-"""A ray-cast scene of textured axis-aligned boxes: a room seen from inside plus boxes in it.
+"""Ray-cast scenes of textured axis-aligned boxes: a room, hall or other enclosure seen from inside
+plus boxes in it (``make_scene``: room, cluttered, deep, distant).
 
 Rendering returns linear radiance and z-depth for a camera pose ``T_world_cam``; it is jit-compiled
 and renders many sub-frame poses in one call (``render_exposure``), averaging radiance over the
@@ -19,7 +20,10 @@ from ..geometry.camera import PinholeCamera
 from ..geometry.pose import Pose
 from ..image import bilinear_wrapped
 
-__all__ = ["Scene", "make_textures", "default_scene", "scene_arrays", "render_exposure"]
+__all__ = [
+    "Scene", "SCENES", "CAMERA_REGION", "make_textures", "make_scene", "default_scene", "cluttered_scene", "deep_scene",
+    "distant_scene", "texels_per_metre", "scene_arrays", "render_exposure",
+]
 
 TEXTURE_SIZE = 512
 
@@ -137,6 +141,132 @@ def default_scene(seed: int = 0, use_real_textures: bool = True, shared_data=Non
         textures=textures.astype(np.float32),
         texture_names=names,
     )
+
+
+# The camera paths of every preset (speed <= 1.2 m/s) stay in this region; scenes keep clear of it.
+CAMERA_REGION = np.array([[-0.9, -0.35, -1.2], [0.9, 0.35, 0.2]])
+CAMERA_CENTRE = np.array([0.0, 0.0, -0.5])
+FOCAL_640 = 525.0  # focal length (px) of a 640-wide image
+
+
+def texels_per_metre(distance):
+    """Texture scale for a surface seen from ``distance`` m: one texel per pixel at 640 wide (the
+    renderer does not mip-map, so finer textures alias into frame-to-frame noise)."""
+    return FOCAL_640 / np.asarray(distance, np.float64)
+
+
+def _box_distance(box) -> float:
+    """Distance from the camera path's centre to the nearest point of ``box`` (2, 3)."""
+    nearest = np.clip(CAMERA_CENTRE, box[0], box[1])
+    return float(np.linalg.norm(nearest - CAMERA_CENTRE))
+
+
+def _clear_of_camera(box, clearance: float = 1.0) -> bool:
+    """Whether ``box`` (2, 3) stays ``clearance`` m away from every camera path (``CAMERA_REGION``)."""
+    gap = np.maximum(0.0, np.maximum(CAMERA_REGION[0] - box[1], box[0] - CAMERA_REGION[1]))
+    return float(np.linalg.norm(gap)) >= clearance
+
+
+def _direction(yaw, pitch) -> np.ndarray:
+    """Unit vector ``yaw`` rad to the right of +z and ``pitch`` rad above it (y points down)."""
+    return np.array([np.sin(yaw) * np.cos(pitch), -np.sin(pitch), np.cos(yaw) * np.cos(pitch)])
+
+
+def _assemble(boxes, inside, tpm, rng, textures, names) -> Scene:
+    """A Scene of ``boxes`` with seeded random textures (the enclosing box, first, gets texture 0 or
+    a real photo when there is one)."""
+    k = len(boxes)
+    texture = rng.integers(0, len(names), size=k)
+    texture[0] = 6 if len(names) > 6 else 0
+    return Scene(
+        boxes=np.stack(boxes).astype(np.float32),
+        inside=np.asarray(inside, bool),
+        texture=texture.astype(np.int32),
+        texels_per_m=np.asarray(tpm, np.float32),
+        textures=textures.astype(np.float32),
+        texture_names=names,
+    )
+
+
+def _box(centre, half) -> np.ndarray:
+    """The box (2, 3) [min, max] of ``centre`` and half-sizes ``half``."""
+    centre, half = np.asarray(centre, float), np.asarray(half, float)
+    return np.stack([centre - half, centre + half])
+
+
+def cluttered_scene(seed: int = 0, use_real_textures: bool = True, shared_data=None) -> Scene:
+    """The room of :func:`default_scene` with 26 smaller boxes 1.6-5 m from the camera in the
+    directions it looks (yaw ±60°, pitch ±40°), overlapping in view: many occlusion edges. Every box
+    keeps 1 m from the camera paths."""
+    textures, names = make_textures(seed, use_real=use_real_textures, shared_data=shared_data)
+    rng = np.random.default_rng(seed + 2)
+    room = np.array([[-4.0, -2.5, -2.0], [4.0, 2.5, 7.0]])
+    boxes, tpm = [room], [110.0]
+    while len(boxes) < 27:
+        half = rng.uniform([0.08, 0.08, 0.08], [0.45, 0.6, 0.4])
+        yaw, pitch = np.deg2rad(rng.uniform(-60, 60)), np.deg2rad(rng.uniform(-40, 40))
+        box = _box(CAMERA_CENTRE + rng.uniform(1.6, 5.0) * _direction(yaw, pitch), half)
+        if np.all(box[0] > room[0] + 0.05) and np.all(box[1] < room[1] - 0.05) and _clear_of_camera(box):
+            boxes.append(box)
+            tpm.append(texels_per_metre(_box_distance(box) + half.mean()))
+    return _assemble(boxes, [True] + [False] * (len(boxes) - 1), tpm, rng, textures, names)
+
+
+def _wall_panels(hall, z_edges, thickness: float = 0.05):
+    """Thin boxes lining the side walls, floor and ceiling of ``hall`` in segments along z (and one
+    on the back wall), each with the texture scale of its own distance from the camera."""
+    (x0, y0, z0), (x1, y1, z1) = hall
+    boxes, tpm = [np.array([[x0, y0, z0], [x1, y1, z0 + thickness]])], [texels_per_metre(CAMERA_CENTRE[2] - z0)]
+    for za, zb in zip(z_edges[:-1], z_edges[1:]):
+        dz = abs(0.5 * (za + zb) - CAMERA_CENTRE[2])
+        for lo, hi, side in (((x0, y0, za), (x0 + thickness, y1, zb), -x0), ((x1 - thickness, y0, za), (x1, y1, zb), x1),
+                             ((x0, y0, za), (x1, y0 + thickness, zb), -y0), ((x0, y1 - thickness, za), (x1, y1, zb), y1)):
+            boxes.append(np.array([lo, hi]))
+            tpm.append(texels_per_metre(np.hypot(side, dz)))
+    return boxes, tpm
+
+
+def deep_scene(seed: int = 0, use_real_textures: bool = True, shared_data=None) -> Scene:
+    """A hall 6 m wide, 4 m high and 46 m long (the camera 5.5 m from its back wall) with 22 boxes
+    from 2 m to 35 m ahead: the walls recede from 2 m to 40 m, so views span a wide range of depths."""
+    textures, names = make_textures(seed, use_real=use_real_textures, shared_data=shared_data)
+    rng = np.random.default_rng(seed + 3)
+    hall = np.array([[-3.0, -2.0, -6.0], [3.0, 2.0, 40.0]])
+    panels, panel_tpm = _wall_panels(hall, (-6.0, -2.0, 1.0, 3.0, 5.5, 9.0, 14.0, 21.0, 30.0, 40.0))
+    boxes, tpm = [hall] + panels, [texels_per_metre(40.5)] + panel_tpm
+    for cz in np.geomspace(2.2, 35.0, 22):
+        half = (0.12 + 0.03 * cz) * rng.uniform(0.6, 1.4, 3)
+        half = np.minimum(half, [1.4, 1.2, 2.0])
+        centre = [rng.uniform(-2.9 + half[0], 2.9 - half[0]), rng.uniform(-1.9 + half[1], 1.9 - half[1]), cz]
+        boxes.append(_box(centre, half))
+        tpm.append(texels_per_metre(_box_distance(boxes[-1]) + half.mean()))
+    return _assemble(boxes, [True] + [False] * (len(boxes) - 1), tpm, rng, textures, names)
+
+
+def distant_scene(seed: int = 0, use_real_textures: bool = True, shared_data=None) -> Scene:
+    """A hall 90 m x 60 m x 98 m whose walls, floor, ceiling and 18 boxes are all 25-80 m from
+    the camera: translation barely moves pixels, so rotation dominates the blur."""
+    textures, names = make_textures(seed, use_real=use_real_textures, shared_data=shared_data)
+    rng = np.random.default_rng(seed + 4)
+    hall = np.array([[-45.0, -30.0, -42.0], [45.0, 30.0, 56.0]])
+    boxes, tpm = [hall], [texels_per_metre(45.0)]
+    for _ in range(18):
+        yaw, pitch = np.deg2rad(rng.uniform(-100, 100)), np.deg2rad(rng.uniform(-30, 30))
+        half = rng.uniform(1.5, 5.0, 3)
+        dist = rng.uniform(29.0, 42.0) + np.linalg.norm(half)
+        boxes.append(_box(CAMERA_CENTRE + dist * _direction(yaw, pitch), half))
+        tpm.append(texels_per_metre(dist))
+    return _assemble(boxes, [True] + [False] * (len(boxes) - 1), tpm, rng, textures, names)
+
+
+SCENES = {"room": default_scene, "cluttered": cluttered_scene, "deep": deep_scene, "distant": distant_scene}
+
+
+def make_scene(name: str, seed: int = 0, use_real_textures: bool = True, shared_data=None) -> Scene:
+    """The scene called ``name`` (one of ``SCENES``: room, cluttered, deep, distant)."""
+    if name not in SCENES:
+        raise ValueError(f"unknown scene {name!r} (choose from {', '.join(SCENES)})")
+    return SCENES[name](seed, use_real_textures=use_real_textures, shared_data=shared_data)
 
 
 def scene_arrays(scene: Scene):

@@ -1,0 +1,140 @@
+"""The exposure time of a sequence whose files do not record it, estimated online.
+
+Against a keyframe deblurred along an exposure of length g, a frame moving like the keyframe is
+matched equally well by blur of length g whatever the true exposure: the start/end split alone
+does not observe the exposure time. Two raw frames moving at different speeds do. A raw frame
+blurred over e·s_a pixels (speed s_a px/s, exposure e s) reblurred by ℓ pixels matches a raw frame
+blurred over e·s_b when ℓ² ≈ e²(s_b² − s_a²) (the blur kernels' variances add), so tracking the
+faster frame against the slower one, as it was recorded, gives one sample e = ℓ / √(s_b² − s_a²).
+The estimate is the weighted median of the recent samples (weight: √(s_b² − s_a²) over one frame
+interval, in px), reported as a fraction of the frame interval. ``exposure_mode`` decides whether
+a sequence's exposure is known, estimated or taken as zero (``odometry.exposure``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..config import OdometryConfig, TrackerConfig
+from ..errors import MbavoError
+from ..geometry import ExposureTrajectory, PinholeCamera, Pose
+from ..tracking import Keyframe, exposure_from_velocity, track
+from .stats import keyframe_stats
+
+__all__ = ["ExposureEstimate", "RawFrame", "exposure_mode", "pick_pair", "pair_sample"]
+
+
+def exposure_mode(odo: OdometryConfig, recorded: bool) -> str:
+    """``known``, ``estimate`` or ``none`` for a sequence that ``recorded`` exposure times or not:
+    ``auto`` is known when the data (or ``exposure_s``) gives them and estimated otherwise."""
+    given = recorded or odo.exposure_s > 0
+    if odo.exposure == "known" and not given:
+        raise MbavoError("odometry.exposure=known, but the sequence records no exposure times and odometry.exposure_s is 0 "
+                         "(use exposure=auto to estimate them, or set odometry.exposure_s)")
+    if odo.exposure == "auto":
+        return "known" if given else "estimate"
+    return odo.exposure
+
+
+@dataclasses.dataclass(frozen=True)
+class RawFrame:
+    """A tracked frame as it was recorded, kept for pairing: its image and depth, its mid-exposure
+    pose and the previous tracked frame's (camera-to-world), ``dt`` seconds apart, and its point
+    speed (px/s, measured on the keyframe it was tracked against)."""
+
+    stamp: float
+    image: np.ndarray
+    depth: np.ndarray | None
+    T_world_mid: Pose
+    T_world_prev: Pose
+    dt: float
+    speed: float
+
+
+def pick_pair(recent: tuple[RawFrame, ...], current: RawFrame, ratio: float) -> tuple[RawFrame, RawFrame] | None:
+    """(slower, faster) of ``current`` and the recent frame whose speeds differ most, when the
+    faster moves at least ``ratio`` times as fast; else None."""
+    best, best_ratio = None, ratio
+    for other in recent:
+        slow, fast = (other, current) if other.speed < current.speed else (current, other)
+        r = fast.speed / max(slow.speed, 1e-9)
+        if r >= best_ratio:
+            best, best_ratio = (slow, fast), r
+    return best
+
+
+def _speed(kf: Keyframe, T_ref_world: Pose, frame: RawFrame) -> float:
+    """The mean speed (px/s) of the keyframe's points in ``frame`` (poses relative to the keyframe)."""
+    mid, prev = T_ref_world.compose(frame.T_world_mid), T_ref_world.compose(frame.T_world_prev)
+    return keyframe_stats(kf, ExposureTrajectory(mid, mid), prev).motion_px / frame.dt
+
+
+def _extra_blur(ref: RawFrame, kf: Keyframe, other: RawFrame, tracker: TrackerConfig, guess_s: float) -> float | None:
+    """The blur length (px, on ``kf``'s points) that the raw frame ``ref`` needs to match the raw
+    frame ``other``: ``other`` tracked against it without the prior, from ``guess_s`` exposure at
+    ``other``'s velocity; None when the tracking fails."""
+    T_ref = ref.T_world_mid.inverse()
+    mid = T_ref.compose(other.T_world_mid)
+    path = exposure_from_velocity(other.T_world_prev.inverse().compose(other.T_world_mid), other.dt, guess_s)
+    res = track(kf, other.image, ExposureTrajectory(mid.compose(path.start), mid.compose(path.end)),
+                dataclasses.replace(tracker, blur_prior=0.0), depth=other.depth)
+    return keyframe_stats(kf, res.trajectory).blur_px if res.status.ok else None
+
+
+def pair_sample(slow: RawFrame, fast: RawFrame, camera: PinholeCamera, tracker: TrackerConfig, guess_s: float,
+                ratio: float) -> tuple[float, float] | None:
+    """(exposure s, weight px) of a pair of raw frames: e = √(ℓ² − ℓ₀²) / √(s_fast² − s_slow²), with
+    ℓ the extra blur the slow frame needs to match the fast one and ℓ₀ the same the other way
+    round (none is needed: what it finds is the fit's floor, from noise and interpolation). None
+    when the speeds, measured on the slow frame's points, differ by less than ``ratio`` or a
+    tracking fails."""
+    kf = Keyframe.create(slow.image, slow.depth, camera, tracker)
+    s_slow, s_fast = _speed(kf, slow.T_world_mid.inverse(), slow), _speed(kf, slow.T_world_mid.inverse(), fast)
+    if not (np.isfinite(s_slow) and np.isfinite(s_fast)) or s_fast < ratio * max(s_slow, 1e-9):
+        return None
+    extra = _extra_blur(slow, kf, fast, tracker, guess_s)
+    floor = _extra_blur(fast, Keyframe.create(fast.image, fast.depth, camera, tracker), slow, tracker, guess_s)
+    if extra is None or floor is None:
+        return None
+    spread = float(np.sqrt(s_fast**2 - s_slow**2))
+    return float(min(np.sqrt(max(extra**2 - floor**2, 0.0)) / spread, fast.dt)), spread * fast.dt
+
+
+def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    order = np.argsort(values)
+    cum = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
+
+
+@dataclasses.dataclass(frozen=True)
+class ExposureEstimate:
+    """The recent samples (exposure seconds, weight, frame interval seconds), newest last, at most
+    ``window``; ``guess``: the fraction of the frame interval assumed before the first sample."""
+
+    guess: float
+    window: int
+    samples: tuple[tuple[float, float, float], ...] = ()
+
+    def add(self, sample: tuple[float, float] | None, dt: float) -> "ExposureEstimate":
+        if sample is None:
+            return self
+        return dataclasses.replace(self, samples=(*self.samples, (*sample, dt))[-self.window:])
+
+    @property
+    def count(self) -> int:
+        return len(self.samples)
+
+    def seconds(self, frame_dt: float) -> float:
+        """The exposure time: the samples' weighted median, or ``guess`` · ``frame_dt`` before any."""
+        if not self.samples:
+            return self.guess * frame_dt
+        s = np.asarray(self.samples)
+        return _weighted_median(s[:, 0], s[:, 1])
+
+    def fraction(self) -> float:
+        """The exposure time over the median frame interval of the samples (``guess`` before any)."""
+        if not self.samples:
+            return self.guess
+        return self.seconds(0.0) / float(np.median(np.asarray(self.samples)[:, 2]))

@@ -1,0 +1,136 @@
+"""Sequences without exposure times: the exposure is estimated online from pairs of raw frames
+(``odometry.exposure``), not assumed away; known exposure times are used as before."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from mbavo_jax.config import OdometryConfig, load_config
+from mbavo_jax.datasets import open_sequence
+from mbavo_jax.errors import MbavoError
+from mbavo_jax.evaluation import exposure_path_error, exposure_path_lengths
+from mbavo_jax.geometry import Pose
+from mbavo_jax.io import read_exposure_file
+from mbavo_jax.odometry import ExposureEstimate, RawFrame, exposure_mode, pick_pair, run_odometry
+from mbavo_jax.synthetic import PRESETS, SynthConfig, exposure_hidden_copy, generate_sequence
+
+SMALL_SET = ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]"]
+
+
+def _generated(tmp_path_factory, preset: str):
+    out = tmp_path_factory.mktemp(preset) / preset
+    cfg = SynthConfig(**{**PRESETS[preset], "frames": 16, "width": 160, "height": 120, "subframes": 32, "seed": 2, "real_textures": False})
+    generate_sequence(cfg, out, progress=False)
+    return out, cfg
+
+
+@pytest.fixture(scope="module")
+def strong(tmp_path_factory):
+    return _generated(tmp_path_factory, "strong")
+
+
+def _camera(seq) -> dict:
+    return {k: seq.meta[k] for k in ("fx", "fy", "cx", "cy", "width", "height")}
+
+
+def test_exposure_mode_decides_known_estimated_or_none():
+    assert exposure_mode(OdometryConfig(), recorded=True) == "known"
+    assert exposure_mode(OdometryConfig(), recorded=False) == "estimate"
+    assert exposure_mode(OdometryConfig(exposure_s=0.02), recorded=False) == "known"
+    assert exposure_mode(OdometryConfig(exposure="estimate"), recorded=True) == "estimate"
+    assert exposure_mode(OdometryConfig(exposure="none"), recorded=True) == "none"
+    with pytest.raises(MbavoError, match="exposure=known"):
+        exposure_mode(OdometryConfig(exposure="known"), recorded=False)
+    with pytest.raises(ValueError, match="exposure"):
+        OdometryConfig(exposure="sometimes")
+
+
+def test_estimate_is_the_weighted_median_of_recent_samples():
+    est = ExposureEstimate(guess=0.5, window=3)
+    assert est.seconds(0.04) == pytest.approx(0.02) and est.fraction() == 0.5 and est.count == 0
+    est = est.add((0.010, 1.0), 0.033).add((0.030, 5.0), 0.033).add(None, 0.033).add((0.020, 1.0), 0.033)
+    assert est.count == 3 and est.seconds(1.0) == pytest.approx(0.030)  # the heavy sample wins
+    assert est.fraction() == pytest.approx(0.030 / 0.033)
+    est = est.add((0.012, 1.0), 0.033).add((0.014, 1.0), 0.033).add((0.016, 1.0), 0.033)
+    assert est.count == 3 and est.seconds(1.0) == pytest.approx(0.014)  # only the window counts
+
+
+def test_pairs_need_speeds_that_differ_enough():
+    def raw(stamp, speed):
+        return RawFrame(stamp, np.zeros((2, 2)), None, Pose.identity(), Pose.identity(), 0.033, speed)
+
+    recent = (raw(1.0, 100.0), raw(1.1, 140.0), raw(1.2, 105.0))
+    slow, fast = pick_pair(recent, raw(1.3, 150.0), ratio=1.3)
+    assert (slow.stamp, fast.stamp) == (1.0, 1.3)
+    slow, fast = pick_pair(recent, raw(1.3, 70.0), ratio=1.3)  # the current frame is the slow one
+    assert (slow.stamp, fast.stamp) == (1.3, 1.1)
+    assert pick_pair(recent, raw(1.3, 120.0), ratio=1.3) is None
+
+
+def test_known_exposure_without_times_is_one_line_error(strong, tmp_path, mbavo):
+    hidden = exposure_hidden_copy(strong[0], tmp_path / "hidden")
+    r = mbavo("track", hidden, "--out", tmp_path / "run", "-q", "--set", "odometry.exposure=known")
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "exposure" in r.stderr
+
+
+@pytest.mark.slow
+def test_blurred_sequence_without_exposure_times_recovers_the_exposure(strong, tmp_path, mbavo):
+    """No exposure_ms, no times.txt: the run estimates the exposure (true fraction 0.75) within
+    20 %, gives blurred frames a real exposure path (start != end), and writes the estimate per
+    frame and in the summary."""
+    path, cfg = strong
+    hidden = exposure_hidden_copy(path, tmp_path / "hidden")
+    seq = open_sequence(hidden)
+    assert seq.exposures is None and seq.exposure_paths is not None
+    out = tmp_path / "run"
+    r = mbavo("track", hidden, "--out", out, "--format", "json", "-q", *[a for s in SMALL_SET for a in ("--set", s)])
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    true_fraction = cfg.exposure_ms / 1000 * cfg.fps
+    assert summary["exposure"] == "estimate" and summary["exposure_samples"] >= 3, summary
+    assert abs(summary["exposure_fraction"] - true_fraction) <= 0.2 * true_fraction, summary
+    with open(out / "frames.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert all(r["exposure"] == "estimate" and float(r["exposure_fraction"]) > 0 for r in rows)
+    est = read_exposure_file(out / "exposure.txt")
+    lengths = exposure_path_lengths(est, _camera(seq))
+    assert np.all(lengths[1:] > 0.3), lengths  # start != end on every blurred frame after the first
+    ratio = exposure_path_error(seq.exposure_paths, est, _camera(seq))["length_ratio"]["median"]
+    assert 0.5 < ratio < 1.5, ratio
+
+
+@pytest.mark.slow
+def test_sharp_sequence_without_exposure_times_keeps_start_and_end_together(tmp_path_factory, tmp_path):
+    """A sharp sequence without exposure times: the estimate goes to a short exposure and the
+    exposure paths stay short once it has samples."""
+    path, _ = _generated(tmp_path_factory, "none")
+    hidden = exposure_hidden_copy(path, tmp_path / "hidden")
+    seq = open_sequence(hidden)
+    out = tmp_path / "run"
+    summary = run_odometry(seq, out, load_config(None, SMALL_SET), progress=False)
+    assert summary["exposure"] == "estimate" and summary["exposure_samples"] >= 1, summary
+    assert summary["exposure_fraction"] < 0.15, summary
+    with open(out / "frames.csv", newline="") as fh:
+        first_sample = next(int(r["index"]) for r in csv.DictReader(fh) if r["sample_s"])
+    lengths = exposure_path_lengths(read_exposure_file(out / "exposure.txt"), _camera(seq))
+    assert np.all(lengths[first_sample + 1:] < 0.25), (first_sample, lengths)
+
+
+@pytest.mark.slow
+def test_resumed_estimate_continues_as_the_uninterrupted_run(strong, tmp_path):
+    """--resume restores the exposure samples and the raw frames kept for pairing from frames.csv:
+    the resumed run's estimate and poses follow the uninterrupted run's."""
+    hidden = exposure_hidden_copy(strong[0], tmp_path / "hidden")
+    seq, cfg = open_sequence(hidden), load_config(None, SMALL_SET)
+    full = run_odometry(seq, tmp_path / "full", cfg, progress=False)
+    run_odometry(seq, tmp_path / "resumed", cfg, max_frames=10, progress=False)
+    resumed = run_odometry(seq, tmp_path / "resumed", cfg, resume=True, progress=False)
+    assert resumed["exposure_samples"] == full["exposure_samples"], (resumed, full)
+    assert resumed["exposure_ms"] == pytest.approx(full["exposure_ms"], rel=1e-3)
+    a, b = (np.loadtxt(tmp_path / name / "trajectory.txt") for name in ("full", "resumed"))
+    assert a.shape == b.shape and np.abs(a[:, 1:4] - b[:, 1:4]).max() < 1e-4

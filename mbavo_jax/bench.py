@@ -484,13 +484,14 @@ def format_odometry_table(res: dict) -> str:
     """Three tables, one row per method and one column per sequence: ATE (mm), frame-drop rate,
     seconds per frame; then the deblurred keyframes' PSNR/SSIM."""
     names = list(res)
-    head = f"{'method':<16}" + "".join(f"{n:>16}" for n in names)
+    w = max([20, *(len(n) + 2 for n in names)])  # a column fits its sequence's name and an exposure cell
+    head = f"{'method':<16}" + "".join(f"{n:>{w}}" for n in names)
     methods = [m for m in ODOMETRY_METHODS if any(m in r["methods"] for r in res.values())]
 
     def table(title, cell):
         lines = [title, head]
         for m in methods:
-            lines.append(f"{m:<16}" + "".join(f"{cell(res[n]['methods'].get(m, {})):>16}" for n in names))
+            lines.append(f"{m:<16}" + "".join(f"{cell(res[n]['methods'].get(m, {})):>{w}}" for n in names))
         return lines
 
     def ms(x):
@@ -499,7 +500,7 @@ def format_odometry_table(res: dict) -> str:
         t = f"{x['seconds_per_frame']:.3f}"
         return t + (f" [{x['median_track_ms']:.0f}]" if "median_track_ms" in x else "")
 
-    lines = [f"{'':<16}" + "".join(f"{(f'{b:.1f} px' if b is not None else 'blur ?'):>16}" for b in (r["mean_blur_px"] for r in res.values())), ""]
+    lines = [f"{'':<16}" + "".join(f"{(f'{b:.1f} px' if b is not None else 'blur ?'):>{w}}" for b in (r["mean_blur_px"] for r in res.values())), ""]
     lines += table("ATE, SE3-aligned RMSE (mm)", lambda x: f"{1000 * x['ate_rmse_m']:.2f}" if "ate_rmse_m" in x else x.get("error", "-")[:15])
     lines += ["", *table("frame-drop rate", lambda x: f"{x['frame_drop_rate']:.2f}" if "frame_drop_rate" in x else "-")]
     lines += ["", *table("seconds per frame: ours = whole loop incl. compilation, keyframes, deblurring [median tracking ms]; peers = median call", ms)]
@@ -507,7 +508,7 @@ def format_odometry_table(res: dict) -> str:
     lines += ["", "deblurred keyframes (ours_n64): PSNR dB (blurry input) / SSIM (blurry input)"]
     for n, r in res.items():
         d = r["methods"].get("ours_n64", {}).get("deblur") or {}
-        lines.append(f"{n:<16}" + (f"{d['psnr_deblurred']:.2f} ({d['psnr_blurry']:.2f}) / {d['ssim_deblurred']:.3f} ({d['ssim_blurry']:.3f}), {d['keyframes']} keyframes" if d else "-"))
+        lines.append(f"{n:<{w}}" + (f"{d['psnr_deblurred']:.2f} ({d['psnr_blurry']:.2f}) / {d['ssim_deblurred']:.3f} ({d['ssim_blurry']:.3f}), {d['keyframes']} keyframes" if d else "-"))
     lines += ["", "ours_n64/n1/adaptive: images only (MBA-VO); *_depth: plus the current frame's depth (tracking.geometric);",
               "open3d: hybrid term (photometric + ICP on the current frame's depth); open3d_color: photometric only;",
               "opencv: cv2.Odometry RGB_DEPTH (uses the current frame's depth); *_sensor sequences: Kinect-class depth (mbavo synth --depth-model sensor)"]

@@ -418,8 +418,7 @@ def _exposure_quality(seq, run: pathlib.Path, summ: dict) -> dict:
 
     out = {k: summ[k] for k in ("exposure", "exposure_ms", "exposure_fraction", "exposure_samples") if k in summ}
     if seq.exposure_paths is not None:
-        cam = {"fx": float(seq.camera.fx), "fy": float(seq.camera.fy), "cx": float(seq.camera.cx), "cy": float(seq.camera.cy),
-               "width": seq.camera.width, "height": seq.camera.height}
+        cam = seq.camera.as_dict()
         ratio = exposure_path_error(seq.exposure_paths, read_exposure_file(run / "exposure.txt"), cam).get("length_ratio")
         if ratio:
             out["exposure_length_ratio"] = ratio["median"]

@@ -122,7 +122,7 @@ def _cmd_info(args) -> int:
         "kind": seq.kind,
         "frames": len(seq),
         "duration_s": float(seq.timestamps[-1] - seq.timestamps[0]) if len(seq) > 1 else 0.0,
-        "camera": {"fx": float(cam.fx), "fy": float(cam.fy), "cx": float(cam.cx), "cy": float(cam.cy), "width": cam.width, "height": cam.height},
+        "camera": cam.as_dict(),
         "depth": seq.has_depth,
         "exposure_times": seq.exposures is not None,
         "groundtruth_poses": 0 if seq.groundtruth is None else int(len(seq.groundtruth[0])),

@@ -59,6 +59,11 @@ class PinholeCamera(eqx.Module):
             & (x[1] <= self.height - 1 - border)
         )
 
+    def as_dict(self) -> dict:
+        """fx, fy, cx, cy (floats), width, height: camera.yaml's keys."""
+        return {"fx": float(self.fx), "fy": float(self.fy), "cx": float(self.cx), "cy": float(self.cy),
+                "width": self.width, "height": self.height}
+
     def scaled(self, level: int) -> "PinholeCamera":
         """The camera of pyramid level ``level`` (each level halves the image, pixel centres kept)."""
         f = 0.5**level

@@ -14,6 +14,7 @@ a sequence's exposure is known, estimated or taken as zero (``odometry.exposure`
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
@@ -23,7 +24,13 @@ from ..geometry import ExposureTrajectory, PinholeCamera, Pose
 from ..tracking import Keyframe, exposure_from_velocity, track
 from .stats import keyframe_stats
 
-__all__ = ["ExposureEstimate", "RawFrame", "exposure_mode", "pick_pair", "pair_sample"]
+__all__ = ["ExposureEstimate", "RawFrame", "exposure_mode", "prior_off", "pick_pair", "pair_sample"]
+
+
+@functools.lru_cache(maxsize=16)
+def prior_off(config: TrackerConfig) -> TrackerConfig:
+    """``config`` without the exposure-motion prior (one object per config: the tracker's caches hit)."""
+    return dataclasses.replace(config, blur_prior=0.0)
 
 
 def exposure_mode(odo: OdometryConfig, recorded: bool) -> str:
@@ -79,7 +86,7 @@ def _extra_blur(ref: RawFrame, kf: Keyframe, other: RawFrame, tracker: TrackerCo
     mid = T_ref.compose(other.T_world_mid)
     path = exposure_from_velocity(other.T_world_prev.inverse().compose(other.T_world_mid), other.dt, guess_s)
     res = track(kf, other.image, ExposureTrajectory(mid.compose(path.start), mid.compose(path.end)),
-                dataclasses.replace(tracker, blur_prior=0.0), depth=other.depth)
+                prior_off(tracker), depth=other.depth)
     return keyframe_stats(kf, res.trajectory).blur_px if res.status.ok else None
 
 

@@ -12,7 +12,6 @@ becomes a keyframe at the last good pose. No file I/O happens here.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 
 import numpy as np
@@ -21,7 +20,7 @@ from ..config import OdometryConfig, RunConfig, TrackerConfig
 from ..deblur import choose_deblur_n, deblur, exposure_blur_px
 from ..geometry import ExposureTrajectory, PinholeCamera, Pose
 from ..tracking import Keyframe, Status, TrackResult, constant_velocity_guess, exposure_from_velocity, track
-from .exposure import ExposureEstimate, RawFrame, exposure_mode, pair_sample, pick_pair
+from .exposure import ExposureEstimate, RawFrame, exposure_mode, pair_sample, pick_pair, prior_off
 from .stats import PointStats, keyframe_stats
 from .state import ExposureReport, FrameOutcome, KeyframeState, NewKeyframe, PendingDeblur, RunState, Triptych
 
@@ -36,11 +35,6 @@ def needs_keyframe(stats: PointStats, width: int, odo: OdometryConfig) -> bool:
     return bool(stats.visible < odo.keyframe_min_visible or flow > odo.keyframe_flow_max * width
                 or (flow > odo.keyframe_flow * width and stats.blur_px <= odo.keyframe_max_blur_px))
 
-
-@functools.lru_cache(maxsize=16)
-def _prior_off(config: TrackerConfig) -> TrackerConfig:
-    """``config`` without the exposure-motion prior."""
-    return dataclasses.replace(config, blur_prior=0.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,7 +86,7 @@ class RGBDPipeline:
         exposure-motion prior is off while the guess carries no velocity (``informed`` false), so
         that nothing pins a frame sharp for want of knowledge."""
         tracker = self.config.tracker
-        return tracker if informed or self.exposure_mode(frame) != "estimate" else _prior_off(tracker)
+        return tracker if informed or self.exposure_mode(frame) != "estimate" else prior_off(tracker)
 
     def keyframe_without_path(self, state: RunState, frame, T_world_kf: Pose) -> tuple[RunState, NewKeyframe]:
         """A keyframe at ``T_world_kf`` from a frame whose exposure path is not known yet: used as it
@@ -162,23 +156,22 @@ class RGBDPipeline:
         again = track(keyframe, frame.image, init, self.tracker_config(frame, True), depth=frame.depth)
         return state, (again if again.status.ok else result), ((kf.stamp, sharp),)
 
-    def exposure_report(self, state: RunState, frame, sample: tuple[float, float] | None, dt: float) -> ExposureReport:
+    def exposure_report(self, state: RunState, frame, sample: tuple[float, float] | None, dt: float,
+                        speed: float | None = None) -> ExposureReport:
         """This frame's exposure record; when estimated, ``sample`` (or None) is added to
-        ``state.exposure`` and the report carries the result."""
+        ``state.exposure`` and the report carries the result and the frame's point ``speed``."""
         mode = self.exposure_mode(frame)
         if mode != "estimate":
             seconds = self.exposure_of(state, frame, dt)
             return ExposureReport(mode, seconds, seconds / dt if dt > 0 else None)
         est = self.estimate(state).add(sample, dt)
-        return ExposureReport(mode, est.seconds(dt), est.fraction(), None if sample is None else (*sample, dt), est)
+        return ExposureReport(mode, est.seconds(dt), est.fraction(), None if sample is None else (*sample, dt), est, speed)
 
-    def exposure_pairing(self, state: RunState, frame, T_w_mid: Pose, stats: PointStats, dt: float):
-        """With an estimated exposure: (recent raw frames with this one, a sample from the pair of
-        this frame and a recent one whose speeds differ most, or None)."""
-        if self.exposure_mode(frame) != "estimate" or dt <= 0:
-            return state.recent, None
+    def exposure_pairing(self, state: RunState, frame, T_w_mid: Pose, speed: float, dt: float):
+        """(recent raw frames with this one, a sample from the pair of this frame and a recent one
+        whose speeds differ most, or None), for an estimated exposure."""
         odo = self.config.odometry
-        current = RawFrame(frame.timestamp, frame.image, frame.depth, T_w_mid, state.mids[-1][1], dt, stats.motion_px / dt)
+        current = RawFrame(frame.timestamp, frame.image, frame.depth, T_w_mid, state.mids[-1][1], dt, speed)
         pair, sample = pick_pair(state.recent, current, odo.exposure_pair_ratio), None
         if pair is not None:
             guess = self.estimate(state).seconds(pair[1].dt)
@@ -191,10 +184,9 @@ class RGBDPipeline:
         T_w_mid = T_w_kf.compose(traj.middle())
         T_w_prev, dt = state.mids[-1][1], frame.timestamp - state.mids[-1][0]
         stats = keyframe_stats(state.keyframe.keyframe, traj, T_w_kf.inverse().compose(T_w_prev))
-        recent, sample = self.exposure_pairing(state, frame, T_w_mid, stats, dt) if informed else (state.recent, None)
-        report = self.exposure_report(state, frame, sample, dt)
-        if recent and recent[-1].stamp == frame.timestamp:
-            report = dataclasses.replace(report, speed=recent[-1].speed)
+        speed = stats.motion_px / dt if informed and dt > 0 and self.exposure_mode(frame) == "estimate" else None
+        recent, sample = self.exposure_pairing(state, frame, T_w_mid, speed, dt) if speed is not None else (state.recent, None)
+        report = self.exposure_report(state, frame, sample, dt, speed)
         state = state.replace(mids=(*state.mids, (frame.timestamp, T_w_mid))[-2:], tracked=state.tracked + 1, consecutive_drops=0,
                               exposure=report.estimate or state.exposure, recent=recent)
         new = None

@@ -51,18 +51,17 @@ def _restore_exposure(state: RunState, out: pathlib.Path, seq, before: float, po
     samples = tuple((float(r["sample_s"]), float(r["sample_weight"]), float(r["sample_dt_s"])) for r in rows if r.get("sample_s"))
     if any(r.get("exposure") == "estimate" for r in rows):
         state = state.replace(exposure=dataclasses.replace(est, samples=samples[-est.window:]))
-    stamps = sorted(poses)
+    stamps = np.array(sorted(poses))
+    keep = pipeline.config.odometry.exposure_pair_frames
     recent = []
-    for r in (r for r in rows if r.get("speed_px_s")):
-        t = float(r["timestamp"])
-        k = stamps.index(min(stamps, key=lambda s: abs(s - t)))
+    for r in [r for r in rows if r.get("speed_px_s")][-keep:]:  # only the frames the pairing keeps are loaded
+        k = int(np.argmin(np.abs(stamps - float(r["timestamp"]))))
         if k == 0:
             continue
         frame = seq[int(r["index"])]
         recent.append(RawFrame(frame.timestamp, frame.image, frame.depth, poses[stamps[k]], poses[stamps[k - 1]],
                                frame.timestamp - stamps[k - 1], float(r["speed_px_s"])))
-    keep = pipeline.config.odometry.exposure_pair_frames
-    return state.replace(recent=tuple(recent[-keep:]))
+    return state.replace(recent=tuple(recent))
 
 
 def resume_state(out, seq, pipeline: Pipeline) -> tuple[RunState, int]:

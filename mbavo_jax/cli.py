@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 
 from .config import PRESETS, BenchConfig, DeblurConfig, SynthConfig, add_arguments, from_arguments
@@ -25,6 +26,28 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message):
         self.exit(1, f"mbavo: error: {message}\n")
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
+    if not (value > 0 and value != float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
 
 
 # ------------------------------------------------------------------------------------- commands
@@ -47,9 +70,10 @@ def _cmd_synth(args) -> int:
         from .synthetic import blur_real_sequence
 
         seq = open_sequence(args.source)
-        blur = args.blur_px if args.blur_px is not None else PRESET_BLUR_PX[args.preset]
-        summary = blur_real_sequence(seq, args.out, blur_px=blur, n=args.subframes or 64, seed=args.seed or 0,
-                                     noise=args.noise or 0.0, progress=not args.quiet, exposure_info=args.exposure_info is not False)
+        given = lambda value, default: default if value is None else value
+        summary = blur_real_sequence(seq, args.out, blur_px=given(args.blur_px, PRESET_BLUR_PX[args.preset]),
+                                     n=given(args.subframes, 64), seed=given(args.seed, 0), noise=given(args.noise, 0.0),
+                                     progress=not args.quiet, exposure_info=args.exposure_info is not False)
     else:
         cfg = from_arguments(SynthConfig, args, PRESETS[args.preset])
         from .synthetic import generate_sequence
@@ -64,13 +88,11 @@ def _cmd_synth(args) -> int:
 
 
 def _eval_plots(args, res: dict, errors, t_ref, p_ref, t_est, p_est) -> None:
-    import pathlib
-
     from . import evaluation as ev
     from .evaluation import plots
+    from .io import prepare_out_dir
 
-    out = pathlib.Path(args.plot)
-    out.mkdir(parents=True, exist_ok=True)
+    out = prepare_out_dir(args.plot, "--plot")
     if args.metric == "ape":
         i_est, _, ref_xyz, est_xyz = ev.aligned_positions(t_ref, p_ref, t_est, p_est, args.align, args.t_max_diff)
         plots.plot_trajectories(out / "trajectory.png", ref_xyz, est_xyz, f"APE rmse {res['rmse']:.4f} m ({args.align})")
@@ -87,6 +109,8 @@ def _cmd_eval(args) -> int:
     from .io import read_camera_yaml, read_exposure_file, read_tum_trajectory
 
     if args.metric == "exposure":
+        if args.camera is None:
+            raise UserError("eval exposure needs --camera CAMERA.yaml (the intrinsics of the reprojection error)")
         ref = read_exposure_file(args.reference)
         est = read_exposure_file(args.estimate)
         cam = read_camera_yaml(args.camera)
@@ -160,7 +184,8 @@ def _cmd_track(args) -> int:
     from .odometry import run_odometry
 
     out = pathlib.Path(args.out)
-    summary = run_odometry(seq, out, config, resume=args.resume, max_frames=args.max_frames, progress=not args.quiet)
+    summary = run_odometry(seq, out, config, resume=args.resume or args.resume_anyway, max_frames=args.max_frames,
+                           progress=not args.quiet, resume_anyway=args.resume_anyway)
     summary.update(evaluate_run(out, seq.groundtruth, seq.timestamps, config.evaluation, plots=True))
     summary["out"] = str(out)
     if args.format == "json":
@@ -184,27 +209,27 @@ def _cmd_deblur(args) -> int:
     from .deblur import deblur, psnr, ssim
     from .evaluation import associate
     from .geometry import ExposureTrajectory, Pose
-    from .io import read_exposure_file, read_image_gray
+    from .io import format_stamp, prepare_out_dir, read_exposure_file, read_image_gray
 
     seq = open_sequence(args.sequence)
     if not 0 <= args.frame < len(seq):
-        raise UserError(f"--frame {args.frame} out of range (the sequence has {len(seq)} frames)")
+        raise UserError(f"--frame {args.frame} out of range (the sequence has {len(seq)} frames, 0 to {len(seq) - 1})")
     frame = seq[args.frame]
     if frame.depth is None:
         raise UserError(f"{seq.path}: deblurring needs depth")
-    gt_file = pathlib.Path(seq.path) / "groundtruth_exposure.txt"  # where a sequence without exposure info keeps its paths
-    source = pathlib.Path(args.exposure) if args.exposure else (gt_file if gt_file.is_file() else gt_file.with_name("exposure.txt"))
+    source = _exposure_source(args, seq.path)
     stamps, starts, ends = read_exposure_file(source)
     tol = EvalConfig().t_max_diff
     _, match = associate(np.array([frame.timestamp]), stamps, tol)
     if len(match) == 0:
-        raise UserError(f"{source}: no exposure path within {tol} s (evaluation.t_max_diff) of frame {args.frame} ({frame.timestamp:.6f})")
+        raise UserError(f"{source}: no exposure path within {tol} s (evaluation.t_max_diff) of frame {args.frame} ({format_stamp(frame.timestamp)})")
+    out = prepare_out_dir(args.out)
     j = int(match[0])
     P = lambda v: Pose.from_vector(jnp.asarray(v, jnp.float32))
     traj = ExposureTrajectory(P(starts[j]), P(ends[j]))
-    sharp = deblur(frame.image, frame.depth, seq.camera, traj, cfg, float(seq.meta.get("response_gamma", 1.0)))
-    out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    sharp = np.asarray(deblur(frame.image, frame.depth, seq.camera, traj, cfg, float(seq.meta.get("response_gamma", 1.0))))
+    if not np.isfinite(sharp).all():
+        raise UserError(f"{frame.path}: deblurring gave non-finite values; nothing written (check the depth and {source})")
     name = f"{frame.timestamp:.6f}.png"
     cv2.imwrite(str(out / name), np.clip(sharp * 255, 0, 255).astype(np.uint8))
     res = {"frame": args.frame, "output": str(out / name)}
@@ -217,15 +242,27 @@ def _cmd_deblur(args) -> int:
     return 0
 
 
-def _cmd_demo(args) -> int:
+def _exposure_source(args, root):
+    """deblur's exposure file: --exposure, else the sequence's groundtruth_exposure.txt or exposure.txt."""
     import pathlib
 
+    if args.exposure:
+        return pathlib.Path(args.exposure)
+    found = [pathlib.Path(root) / n for n in ("groundtruth_exposure.txt", "exposure.txt") if (pathlib.Path(root) / n).is_file()]
+    if not found:
+        raise UserError(f"{root}: no groundtruth_exposure.txt or exposure.txt (give --exposure FILE, e.g. a 'mbavo track' exposure.txt)")
+    return found[0]
+
+
+def _cmd_demo(args) -> int:
+    from .io import prepare_out_dir
+
+    out = prepare_out_dir(args.out)
     from .datasets import open_sequence
     from .evaluation import evaluate_run
     from .odometry import run_odometry
     from .synthetic import generate_sequence
 
-    out = pathlib.Path(args.out)
     data = out / "sequence"
     if not (data / "exposure.txt").is_file():
         cfg = SynthConfig(**{**PRESETS[args.preset], "frames": args.frames, "width": args.width, "height": args.height, "seed": args.seed})
@@ -334,8 +371,11 @@ def _add_track(sub) -> None:
     p.add_argument("sequence", help="sequence folder (TUM RGB-D, mbavo synth output, DSO with depth/)")
     p.add_argument("--out", required=True, help="output folder (trajectory.txt, exposure.txt, keyframes.txt, plots)")
     _config_flags(p)
-    p.add_argument("--resume", action="store_true", help="continue after the last frame already in OUT/trajectory.txt")
-    p.add_argument("--max-frames", type=int, help="stop after this many frames")
+    p.add_argument("--resume", action="store_true",
+                   help="continue after the last frame committed in OUT (same sequence and settings, else an error)")
+    p.add_argument("--resume-anyway", action="store_true",
+                   help="--resume even with another sequence or other settings (recorded in OUT/run.yaml)")
+    p.add_argument("--max-frames", type=positive_int, help="stop after this many frames")
     p.add_argument("--kind", default="auto", choices=KINDS)
     _format_flag(p)
     _quiet_flag(p, "no progress bar")
@@ -382,12 +422,12 @@ def _add_eval(sub) -> None:
     p.add_argument("reference", help="ground truth (TUM file; exposure.txt for 'exposure')")
     p.add_argument("estimate", help="estimate (TUM file; exposure.txt for 'exposure')")
     p.add_argument("--align", "-a", choices=["none", "se3", "sim3"], default="se3", help="Umeyama alignment (default se3)")
-    p.add_argument("--t_max_diff", type=float, default=0.01,
+    p.add_argument("--t_max_diff", type=positive_float, default=0.01,
                    help="max timestamp difference for association in s (default 0.01, evo's; mbavo track uses evaluation.t_max_diff)")
-    p.add_argument("--delta", type=int, default=1, help="RPE frame delta (default 1)")
+    p.add_argument("--delta", type=positive_int, default=1, help="RPE frame delta (default 1)")
     p.add_argument("--sequence", help="sequence folder: also report the frame-drop rate")
     p.add_argument("--camera", help="camera.yaml (needed for 'exposure')")
-    p.add_argument("--depth", type=float, default=2.0, help="'exposure': depth of the reprojection grid in m (default 2)")
+    p.add_argument("--depth", type=positive_float, default=2.0, help="'exposure': depth of the reprojection grid in m (default 2)")
     p.add_argument("--plot", metavar="DIR", help="write PNG plots to DIR")
     _format_flag(p)
     p.set_defaults(func=_cmd_eval)
@@ -410,16 +450,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)  # argument errors: one line, exit 1
+    previous = signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM stops like Ctrl-C: finished frames are kept
     try:
         return int(args.func(args) or 0)
     except UserError as exc:
         print(f"mbavo: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print("mbavo: interrupted", file=sys.stderr)
+        print("mbavo: interrupted (every finished frame is kept; 'mbavo track ... --resume' continues)", file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ built in Python is checked the same way.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import pathlib
 import typing
@@ -107,6 +108,22 @@ def _check_type(key: str, value, hint) -> None:
 
 # ----------------------------------------------------------------------------------------- tracker
 
+PATTERN_SIZE = 8  # residuals per point: DSO's 8-pixel pattern (tracking.points.PATTERN)
+MIN_CELL = 8  # smallest point-selection cell (px): patches (5x5 px) of neighbouring cells stay apart
+
+
+def _grid_cells(height: int, width: int, cell: int) -> int:
+    """Whole ``cell`` x ``cell`` blocks of a height x width level (``tracking.points.select_points``' grid)."""
+    return (height // cell) * (width // cell)
+
+
+def _fitted_cell(height: int, width: int, cell: int, need: int) -> int:
+    """The largest cell, at most ``cell`` and at least ``MIN_CELL`` (if ``cell`` is), whose grid holds ``need`` cells."""
+    c = cell
+    while c > MIN_CELL and _grid_cells(height, width, c) < need:
+        c -= 1
+    return c
+
 
 @dataclasses.dataclass(frozen=True)
 class TrackerConfig(Settings):
@@ -155,6 +172,50 @@ class TrackerConfig(Settings):
     depth_stride: int = setting(8, "grid spacing of the depth term's keyframe points (full-resolution pixels)", AT_LEAST_1)
     depth_edge: float = setting(0.02, "depth samples whose neighbours differ by more than this fraction are edges: dropped", POSITIVE)
 
+    @property
+    def min_cells(self) -> int:
+        """Point cells a pyramid level must offer: 1.5x the points whose residuals reach ``min_valid``."""
+        return math.ceil(1.5 * self.min_valid / PATTERN_SIZE)
+
+    @functools.lru_cache(maxsize=64)
+    def for_image(self, height: int, width: int) -> "TrackerConfig":
+        """These settings for a ``height`` x ``width`` image (the one rule for small and large images).
+
+        A level is used when its grid can hold ``min_cells`` cells of ``MIN_CELL`` px (or of its own
+        cell, if smaller); coarser levels are dropped with their entries of points, cell and max_steps.
+        On each level used, the cell shrinks (not below that floor) until the level holds ``min_cells``
+        cells. Returns ``self`` when nothing changes; raises ConfigError when not even the
+        full-resolution level qualifies."""
+        need, floors = self.min_cells, [min(MIN_CELL, c) for c in self.cell]
+        levels = 0
+        while levels < self.levels and _grid_cells(height >> levels, width >> levels, floors[levels]) >= need:
+            levels += 1
+        if levels == 0:
+            have = _grid_cells(height, width, floors[0])
+            fix = f"lower tracker.min_valid to {math.floor(have * PATTERN_SIZE / 1.5)} or less" if have else "use larger images"
+            raise ConfigError(f"{width}x{height} images are too small to track: they hold {have} point cell(s) of {floors[0]} px, "
+                              f"tracker.min_valid={self.min_valid} needs {need} ({fix})")
+        cells = tuple(_fitted_cell(height >> l, width >> l, self.cell[l], need) for l in range(levels))
+        if levels == self.levels and cells == self.cell[:levels]:
+            return self
+        return dataclasses.replace(self, levels=levels, points=self.points[:levels], cell=cells,
+                                   max_steps=self.max_steps[:levels])
+
+    def size_note(self, height: int, width: int) -> str:
+        """One line saying what :meth:`for_image` changes for this image size ('' when nothing)."""
+        eff = self.for_image(height, width)
+        if eff == self:
+            return ""
+        parts = []
+        if eff.levels < self.levels:
+            h, w = height >> eff.levels, width >> eff.levels
+            parts.append(f"using {eff.levels} pyramid levels instead of {self.levels} (a {w}x{h} px level is too small)")
+        if eff.cell != self.cell[: eff.levels]:
+            parts.append(f"point cells {list(eff.cell)} px instead of {list(self.cell[: eff.levels])}")
+        if not parts:
+            return ""
+        return f"{width}x{height}: " + ", ".join(parts) + f" (each level needs {self.min_cells} point cells of at least {MIN_CELL} px)"
+
     def relations(self) -> list[str]:
         out = [f"{name} needs one entry per level ({self.levels}), got {list(getattr(self, name))}"
                for name in ("points", "cell", "max_steps") if len(getattr(self, name)) < self.levels]
@@ -190,6 +251,12 @@ class OdometryConfig(Settings):
     exposure_window: int = setting(30, "estimated exposure: weighted median over this many recent samples", AT_LEAST_1)
     exposure_pair_ratio: float = setting(1.3, "estimated exposure: a sample pairs two raw frames whose speeds differ by this factor", at_least(1.05))
     exposure_pair_frames: int = setting(6, "estimated exposure: a frame is paired with one of this many recent frames", AT_LEAST_1)
+    reject_rms_ratio: float = setting(2.5, "a tracked frame whose residual RMS exceeds this multiple of the largest of the recent "
+                                      "frames' is dropped as implausible (0 = off)", NONNEG)
+    reject_jump_ratio: float = setting(4.0, "... or whose pose lies further from the constant-velocity prediction than this multiple "
+                                       "of the recent frames' median distance plus reject_jump_px, per frame interval (0 = off)", NONNEG)
+    reject_jump_px: float = setting(4.0, "see reject_jump_ratio (full-resolution pixels)", NONNEG)
+    reject_window: int = setting(10, "the recent tracked frames the two checks above compare with (they start after 3)", AT_LEAST_1)
     triptychs: int = setting(3, "blurry / reblurred / deblurred images written for the first deblurred keyframes", NONNEG)
 
 
@@ -368,10 +435,12 @@ def _strict_bools(layer, prefix: str = "") -> None:
 def _read_yaml(p: pathlib.Path) -> dict:
     import yaml
 
+    from .io import read_text
+
     if not p.is_file():
         raise ConfigError(f"{p}: config file not found")
     try:
-        data = yaml.safe_load(p.read_text()) or {}
+        data = yaml.safe_load(read_text(p, "config file")) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: not valid YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(data, dict) or not all(isinstance(v, (dict, type(None))) for v in data.values()):
@@ -387,6 +456,8 @@ def _omegaconf_message(exc) -> str:
         return f"unknown setting {key!r} (sections: {', '.join(SECTIONS)}; see configs/default.yaml)"
     if isinstance(exc.__cause__, ConfigError):  # raised by a dataclass check inside to_object
         return str(exc.__cause__)
+    if "is not a TupleConfig" in first:
+        return f"{key}: expected a list, one value per pyramid level (e.g. [8, 10, 12, 20]), got {first.split()[3]}"
     return f"{key}: {first}" if key else first
 
 

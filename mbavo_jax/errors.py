@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["MbavoError", "DataError", "ConfigError"]
+__all__ = ["MbavoError", "DataError", "ConfigError", "FrameIndexError", "ArgumentError"]
 
 
 class MbavoError(Exception):
@@ -21,3 +21,11 @@ class DataError(MbavoError):
 
 class ConfigError(MbavoError, ValueError):
     """An unknown or invalid configuration key or value (also a ValueError: a bad argument)."""
+
+
+class FrameIndexError(MbavoError, IndexError):
+    """A frame index outside a sequence (also an IndexError, as for a list)."""
+
+
+class ArgumentError(MbavoError, ValueError):
+    """A Python API call given something it cannot use (e.g. no image where an image is needed)."""

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-__all__ = ["bilinear_cell", "lerp_cell", "bilinear", "bilinear_with_gradient", "bilinear_wrapped", "downsample",
+__all__ = ["to_uint16", "from_uint16", "quantize16", "bilinear_cell", "lerp_cell", "bilinear", "bilinear_with_gradient", "bilinear_wrapped", "downsample",
            "pyramid", "linearize", "delinearize"]
 
 
@@ -100,3 +100,19 @@ def delinearize(radiance, gamma: float) -> np.ndarray:
     """The camera response: radiance -> display intensity r^(1/γ)."""
     radiance = np.asarray(radiance, np.float32)
     return radiance if gamma == 1.0 else radiance ** np.float32(1.0 / gamma)
+
+
+def to_uint16(image) -> np.ndarray:
+    """A [0, 1] image as 16-bit integers (how keyframe images are stored)."""
+    return np.clip(np.round(np.asarray(image, np.float32) * 65535), 0, 65535).astype(np.uint16)
+
+
+def from_uint16(image) -> np.ndarray:
+    """16-bit integers as a float32 [0, 1] image."""
+    return np.asarray(image, np.uint16).astype(np.float32) / np.float32(65535)
+
+
+def quantize16(image) -> np.ndarray:
+    """``image`` as it reads back from a 16-bit file: the odometry tracks against keyframe images
+    as stored, so that a resumed run sees exactly what the interrupted one saw."""
+    return from_uint16(to_uint16(image))

@@ -1,7 +1,8 @@
 """File formats: TUM trajectories (strict 8 columns), exposure paths, camera YAML, depth PNGs.
 
 Every reader validates what it reads and raises :class:`~mbavo_jax.errors.DataError` naming the
-file and line. Writers flush per call so an interrupted run keeps what it wrote.
+file and line; text files are read as UTF-8 through :func:`read_text`. Writers flush per call so an
+interrupted run keeps what it wrote; output folders are made by :func:`prepare_out_dir`.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import pathlib
 import numpy as np
 import yaml
 
-from .errors import DataError
+from .errors import DataError, MbavoError
 
 __all__ = [
     "read_tum_trajectory",
@@ -28,52 +29,104 @@ __all__ = [
     "check_unit_quaternions",
     "check_stamps",
     "read_table",
+    "read_text",
+    "data_lines",
+    "format_stamp",
+    "check_size",
+    "prepare_out_dir",
+    "principal_point_problem",
 ]
+
+
+def read_text(path, what: str) -> str:
+    """The text of a UTF-8 file (a leading byte-order mark dropped). DataError naming the file when it
+    is missing or unreadable, and the line of the first byte that is not UTF-8."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise DataError(path, f"{what} not found")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise DataError(path, f"cannot read the {what}: {exc.strerror}") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise DataError(path, f"byte 0x{data[exc.start]:02x} is not UTF-8 text (save it as UTF-8)", line) from None
+
+
+def data_lines(path, what: str) -> list[tuple[int, str]]:
+    """(line number, stripped text) of each line of a UTF-8 text file that is neither blank nor a '#' comment."""
+    text = read_text(path, what).replace("\r\n", "\n").replace("\r", "\n")  # universal newlines, as open() reads
+    lines = (line.strip() for line in text.split("\n"))
+    return [(k, s) for k, s in enumerate(lines, start=1) if s and not s.startswith("#")]
+
+
+def format_stamp(t) -> str:
+    """A timestamp as a plain number for messages: ``1.033333``, ``inf``, ``nan`` (never ``np.float64(...)``)."""
+    return repr(float(t))
+
+
+def prepare_out_dir(path, what: str = "--out") -> pathlib.Path:
+    """The output folder ``path``, created (with its parents) if needed. A one-line MbavoError when
+    ``path`` or a parent is not a folder, or the folder cannot be created or written to."""
+    path = pathlib.Path(path)
+    existing = next((p for p in (path, *path.parents) if p.exists()), None)
+    if existing is not None and not existing.is_dir():
+        which = "exists and is not a folder" if existing == path else f"cannot be created: {existing} is not a folder"
+        raise MbavoError(f"{path}: {what} {which} (choose another {what})")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise MbavoError(f"{path}: {what} cannot be created: {exc.strerror} (choose another {what})") from None
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise MbavoError(f"{path}: {what} is not writable (choose another {what})")
+    return path
 
 
 def read_table(path, ncols: int | tuple[int, ...], what: str):
     """Yield (line_number, float columns) of a whitespace/comma table, skipping '#' comments."""
-    path = pathlib.Path(path)
-    if not path.is_file():
-        raise DataError(path, f"{what} not found")
     allowed = (ncols,) if isinstance(ncols, int) else ncols
-    with open(path, "r", encoding="utf-8", errors="replace") as fh:
-        for k, line in enumerate(fh, start=1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = s.replace(",", " ").split()
-            if len(parts) not in allowed:
-                exp = " or ".join(str(a) for a in allowed)
-                raise DataError(path, f"expected {exp} columns, found {len(parts)}", k)
-            try:
-                vals = [float(p) for p in parts]
-            except ValueError:
-                raise DataError(path, f"not a number in '{s[:60]}'", k) from None
-            if not all(np.isfinite(vals)):
-                raise DataError(path, "non-finite value", k)
-            yield k, vals
+    for k, s in data_lines(path, what):
+        parts = s.replace(",", " ").split()
+        if len(parts) not in allowed:
+            exp = " or ".join(str(a) for a in allowed)
+            raise DataError(path, f"expected {exp} columns, found {len(parts)}", k)
+        try:
+            vals = [float(p) for p in parts]
+        except ValueError:
+            raise DataError(path, f"not a number in '{s[:60]}'", k) from None
+        if not all(np.isfinite(vals)):
+            raise DataError(path, "non-finite value", k)
+        yield k, vals
 
 
 def check_unit_quaternions(path, q: np.ndarray, lines, tol: float = 1e-3) -> np.ndarray:
-    """Reject quaternions far from unit norm (a sign of a wrong column order); renormalise the rest."""
+    """Reject quaternions far from unit norm (a sign of a wrong column order); renormalise the rest
+    (those already unit to float32 precision are kept as written)."""
     norms = np.linalg.norm(q, axis=1)
     bad = np.nonzero(np.abs(norms - 1.0) > tol)[0]
     if bad.size:
         i = int(bad[0])
         raise DataError(path, f"quaternion norm {norms[i]:.4f} is not 1 (expected qx qy qz qw)", lines[i])
-    return q / norms[:, None]
+    return np.where(np.abs(norms - 1.0)[:, None] < 1e-6, q, q / norms[:, None])
 
 
 def check_stamps(path, stamps: np.ndarray, lines=None) -> np.ndarray:
-    """``stamps`` if they strictly increase; else a DataError naming the file and the line (``lines[i]``
-    is the line of ``stamps[i]``) of the first duplicate or decreasing one."""
+    """``stamps`` if they are finite and strictly increase; else a DataError naming the file and the
+    line (``lines[i]`` is the line of ``stamps[i]``) of the first NaN, infinite, duplicate or decreasing one."""
+    line = lambda i: None if lines is None else lines[i]
+    stamps = np.asarray(stamps, np.float64)
+    bad = np.nonzero(~np.isfinite(stamps))[0]
+    if bad.size:
+        i = int(bad[0])
+        raise DataError(path, f"timestamp {format_stamp(stamps[i])} is not a finite number", line(i))
     d = np.diff(stamps)
     bad = np.nonzero(d <= 0)[0]
     if bad.size:
         i = int(bad[0]) + 1
         kind = "duplicate" if d[i - 1] == 0 else "decreasing"
-        raise DataError(path, f"{kind} timestamp {stamps[i]!r} (timestamps must increase)", None if lines is None else lines[i])
+        raise DataError(path, f"{kind} timestamp {format_stamp(stamps[i])} (timestamps must increase)", line(i))
     return stamps
 
 
@@ -96,6 +149,11 @@ def read_tum_trajectory(path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _fmt_pose(v) -> str:
+    """A pose vector as text: float32 values exactly (shortest digits that read back to the same
+    float32, so that --resume continues from the very poses in memory), others to 9 decimals."""
+    v = np.asarray(v)
+    if v.dtype == np.float32:
+        return " ".join(np.format_float_positional(x, unique=True, trim="-") for x in v)
     return " ".join(f"{x:.9f}" for x in v)
 
 
@@ -158,17 +216,53 @@ def write_exposure_file(path, stamps, starts, ends) -> None:
 
 
 CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
+CAMERA_RULES = {"fx": "> 0", "fy": "> 0", "width": "> 0", "height": "> 0", "cx": "", "cy": "",
+                "depth_scale": "> 0", "fps": "> 0", "response_gamma": "> 0", "exposure_ms": ">= 0"}  # numeric keys
+
+
+def principal_point_problem(cx: float, cy: float, width: int, height: int) -> str:
+    """What is wrong with a principal point outside the image (pixel centres 0 .. size-1), or ''."""
+    for key, c, size, name in (("cx", cx, width, "width"), ("cy", cy, height, "height")):
+        if not 0 <= c <= size - 1:
+            return f"principal point {key} = {c:g} is outside the image (0 <= {key} <= {size - 1} for {name} {size})"
+    return ""
+
+
+def _camera_number(path, key: str, value, rule: str) -> float:
+    """camera.yaml's ``key`` as a finite float obeying ``rule`` ('> 0', '>= 0' or ''), else a DataError naming the key."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise DataError(path, f"camera key '{key}' is not a number: {value!r}") from None
+    if not np.isfinite(v):
+        raise DataError(path, f"camera key '{key}' is not finite: {v}")
+    if (rule == "> 0" and v <= 0) or (rule == ">= 0" and v < 0):
+        raise DataError(path, f"camera key '{key}' must be {rule}, got {v:g}")
+    if key in ("width", "height") and v != int(v):
+        raise DataError(path, f"camera key '{key}' must be a whole number of pixels, got {v:g}")
+    return int(v) if key in ("width", "height") else v
+
+
+def _depth_sigma(path, ds) -> list[float]:
+    """camera.yaml's ``depth_sigma`` [a > 0, b >= 0] as floats, else a DataError."""
+    try:
+        ok = len(ds) == 2 and float(ds[0]) > 0 and float(ds[1]) >= 0 and all(np.isfinite([float(x) for x in ds]))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise DataError(path, f"depth_sigma must be [a > 0, b >= 0] (metres), got {ds!r}")
+    return [float(ds[0]), float(ds[1])]
 
 
 def read_camera_yaml(path) -> dict:
     """Camera YAML: ``fx fy cx cy width height`` required; optional ``depth_scale``,
     ``exposure_ms``, ``fps``, ``response_gamma``, ``depth_sigma`` ([a, b] of the depth noise
-    σ(z) = a + b·(z − 0.4)² m)."""
+    σ(z) = a + b·(z − 0.4)² m). Every value is checked (numbers, ranges, the principal point inside
+    the image); a DataError names the file and the key."""
     path = pathlib.Path(path)
-    if not path.is_file():
-        raise DataError(path, "camera file not found")
+    text = read_text(path, "camera file")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
         raise DataError(path, f"not valid YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(data, dict):
@@ -176,27 +270,14 @@ def read_camera_yaml(path) -> dict:
     missing = [k for k in CAMERA_KEYS if k not in data]
     if missing:
         raise DataError(path, f"missing camera key(s): {', '.join(missing)}")
-    for k in CAMERA_KEYS:
-        try:
-            v = float(data[k])
-        except (TypeError, ValueError):
-            raise DataError(path, f"camera key '{k}' is not a number: {data[k]!r}") from None
-        if not np.isfinite(v):
-            raise DataError(path, f"camera key '{k}' is not finite: {v}")
-        if k in ("fx", "fy", "width", "height") and v <= 0:
-            raise DataError(path, f"camera key '{k}' must be positive, got {v}")
-        if v < 0:
-            raise DataError(path, f"camera key '{k}' must not be negative, got {v}")
-        data[k] = int(v) if k in ("width", "height") else v
+    for k, rule in CAMERA_RULES.items():
+        if k in data:
+            data[k] = _camera_number(path, k, data[k], rule)
+    problem = principal_point_problem(data["cx"], data["cy"], data["width"], data["height"])
+    if problem:
+        raise DataError(path, problem)
     if "depth_sigma" in data:
-        ds = data["depth_sigma"]
-        try:
-            ok = len(ds) == 2 and float(ds[0]) > 0 and float(ds[1]) >= 0
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise DataError(path, f"depth_sigma must be [a > 0, b >= 0] (metres), got {ds!r}")
-        data["depth_sigma"] = [float(ds[0]), float(ds[1])]
+        data["depth_sigma"] = _depth_sigma(path, data["depth_sigma"])
     return data
 
 
@@ -226,6 +307,14 @@ def _imread(path, what: str) -> np.ndarray:
     return img
 
 
+def check_size(path, image: np.ndarray, shape: tuple[int, int], what: str = "image") -> np.ndarray:
+    """``image`` if its (height, width) is ``shape`` (the camera's), else a DataError naming ``path``."""
+    if image.shape[:2] != tuple(shape):
+        h, w = image.shape[:2]
+        raise DataError(path, f"{what} size {w}x{h} differs from the camera's {shape[1]}x{shape[0]}")
+    return image
+
+
 def read_image_gray(path) -> np.ndarray:
     """Read an image as float32 grey in [0, 1] (8- or 16-bit, grey or colour)."""
     cv2 = _cv2()
@@ -238,37 +327,32 @@ def read_image_gray(path) -> np.ndarray:
 
 
 def read_depth_png(path, scale: float = 5000.0, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """16-bit depth PNG → metres (float32); 0 becomes NaN (no measurement)."""
+    """16-bit depth PNG → metres (float32); 0 becomes NaN (no measurement). ``shape``: the (height,
+    width) it must have."""
     path = pathlib.Path(path)
     d = _imread(path, "depth image")
     if d.dtype != np.uint16 or d.ndim != 2:
         raise DataError(path, f"depth must be single-channel 16-bit, got {d.dtype} with shape {d.shape}")
-    if shape is not None and d.shape != tuple(shape):
-        raise DataError(path, f"depth size {d.shape[1]}x{d.shape[0]} differs from image size {shape[1]}x{shape[0]}")
+    if shape is not None:
+        check_size(path, d, shape, "depth")
     out = d.astype(np.float32) / np.float32(scale)
     out[d == 0] = np.nan
     return out
 
 
 def read_file_list(path, what: str = "file list") -> list[tuple[int, float, str]]:
-    """TUM-style ``timestamp filename`` list: returns (line, stamp, relative path), checked sorted."""
+    """TUM-style ``timestamp filename`` list: returns (line, stamp, relative path), checked finite and sorted."""
     path = pathlib.Path(path)
-    if not path.is_file():
-        raise DataError(path, f"{what} not found")
     out = []
-    with open(path) as fh:
-        for k, line in enumerate(fh, start=1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = s.split()
-            if len(parts) < 2:
-                raise DataError(path, "expected 'timestamp filename'", k)
-            try:
-                stamp = float(parts[0])
-            except ValueError:
-                raise DataError(path, f"not a timestamp: '{parts[0]}'", k) from None
-            out.append((k, stamp, parts[1]))
+    for k, s in data_lines(path, what):
+        parts = s.split()
+        if len(parts) < 2:
+            raise DataError(path, "expected 'timestamp filename'", k)
+        try:
+            stamp = float(parts[0])
+        except ValueError:
+            raise DataError(path, f"not a timestamp: '{parts[0]}'", k) from None
+        out.append((k, stamp, parts[1]))
     if not out:
         raise DataError(path, f"{what} is empty")
     stamps = np.array([s for _, s, _ in out])

@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -103,9 +104,11 @@ sys.exit(main(sys.argv[3:]))
 
 
 @pytest.mark.slow
-def test_killed_run_keeps_every_finished_pose_and_resumes(seq_dir, tmp_path, mbavo):
-    """SIGKILL while the run waits for frame 8 (frames 0-7 finished): every finished frame's poses and
-    frames.csv row are on disk; --resume tracks frames 8-15 only and the whole trajectory is good."""
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
+def test_killed_run_keeps_every_finished_pose_and_resumes(sig, seq_dir, tmp_path, mbavo):
+    """SIGKILL (or SIGTERM: exit 130 with one line) while the run waits for frame 8 (frames 0-7
+    finished): every finished frame's poses and frames.csv row are on disk; --resume tracks frames
+    8-15 only and the whole trajectory is good."""
     k = 8
     stop = sorted((seq_dir / "rgb").glob("*.png"))[k].name
     out, flag, log = tmp_path / "killed", tmp_path / "blocked", tmp_path / "stderr.txt"
@@ -124,8 +127,12 @@ def test_killed_run_keeps_every_finished_pose_and_resumes(seq_dir, tmp_path, mba
                 assert time.monotonic() < deadline, f"frame {k} not reached within 300 s ({rows_done()} rows)"
                 time.sleep(0.05)
         finally:
-            proc.kill()  # SIGKILL: no cleanup, no flush
-            proc.wait()
+            proc.send_signal(sig)  # SIGKILL: no cleanup, no flush
+            status = proc.wait(timeout=60)
+    if sig == signal.SIGTERM:
+        lines = log.read_text().splitlines()
+        assert status == 130 and "Traceback" not in log.read_text(), log.read_text()
+        assert lines[-1] == "mbavo: interrupted (every finished frame is kept; 'mbavo track ... --resume' continues)", lines
     rows = frames_csv(out)
     assert [int(r["index"]) for r in rows] == list(range(k))
     finished = [float(r["timestamp"]) for r in rows if r["status"] not in DROPPED]
@@ -289,16 +296,20 @@ def test_keyframe_decision_uses_flow_visibility_and_blur():
 
 @pytest.mark.slow
 def test_fresh_run_clears_keyframe_images_of_an_earlier_run(seq_dir, tmp_path):
-    """Keyframe images and triptychs left in --out by an earlier run must not mix into a new one
-    (they did: the benchmark's PSNR read stale keyframes); --resume keeps them."""
+    """Keyframe images, triptychs and plots left in --out by an earlier run must not mix into a new
+    one (they did: the benchmark's PSNR read stale keyframes; old plots stood beside a new
+    trajectory); files the run does not write stay; --resume keeps them."""
     out = tmp_path / "run"
     (out / "keyframes").mkdir(parents=True)
-    stale = [out / "keyframes" / "99.000000.png", out / "triptych_7.png"]
+    stale = [out / "keyframes" / "99.000000.png", out / "triptych_7.png", out / "trajectory.png", out / "ape_over_time.png"]
     for p in stale:
         cv2.imwrite(str(p), np.zeros((4, 4), np.uint8))
+    (out / "config.resumed_at_5.yaml").write_text("tracker: {}\n")
+    (out / "my_notes.txt").write_text("not the run's\n")
     seq = open_sequence(seq_dir)
     run_odometry(seq, out, load_config(None, SMALL_SET), max_frames=2, progress=False)
-    assert not any(p.exists() for p in stale)
+    assert not any(p.exists() for p in stale) and not (out / "config.resumed_at_5.yaml").exists()
+    assert (out / "my_notes.txt").read_text() == "not the run's\n"
     kf_stamps, _ = read_tum_trajectory(out / "keyframes.txt")
     assert sorted(p.name for p in (out / "keyframes").glob("*.png")) == sorted(f"{t:.6f}.png" for t in kf_stamps)
 

@@ -8,8 +8,9 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import DataError
+from ..errors import FrameIndexError
 from ..geometry.camera import PinholeCamera
+from ..io import check_size
 
 __all__ = ["Frame", "Sequence"]
 
@@ -57,14 +58,9 @@ class Sequence:
     def __getitem__(self, i: int) -> Frame:
         n = len(self)
         if not -n <= i < n:
-            raise IndexError(f"frame {i} out of range for a sequence of {n} frames")
+            raise FrameIndexError(f"{self.path}: frame {i} out of range (the sequence has {n} frames, 0 to {n - 1})")
         frame = self.frame_loader(i % n)
-        h, w = frame.image.shape
-        if (w, h) != (self.camera.width, self.camera.height):
-            raise DataError(
-                frame.path,
-                f"image size {w}x{h} differs from the camera's {self.camera.width}x{self.camera.height}",
-            )
+        check_size(frame.path, frame.image, (self.camera.height, self.camera.width))
         return frame
 
     def __iter__(self):

@@ -13,13 +13,17 @@ from ..errors import DataError
 from ..evaluation.associate import associate
 from ..geometry.camera import PinholeCamera
 from ..io import (
+    check_size,
     check_stamps,
+    data_lines,
+    format_stamp,
     read_camera_yaml,
     read_depth_png,
     read_exposure_file,
     read_file_list,
     read_image_gray,
     read_table,
+    read_text,
     read_tum_trajectory,
 )
 from .base import Frame, Sequence
@@ -35,8 +39,12 @@ TUM_CAMERAS = {
 IMAGE_EXT = (".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
 
 
-def _camera_from_dict(d: dict) -> PinholeCamera:
-    return PinholeCamera.create(d["fx"], d["fy"], d["cx"], d["cy"], d["width"], d["height"])
+def _camera(where, fx, fy, cx, cy, width, height, line: int | None = None) -> PinholeCamera:
+    """``PinholeCamera.create``, its complaint about the values a DataError naming ``where`` (the file they come from)."""
+    try:
+        return PinholeCamera.create(fx, fy, cx, cy, width, height)
+    except ValueError as exc:
+        raise DataError(where, str(exc), line) from None
 
 
 def _first_image_size(path) -> tuple[int, int]:
@@ -57,14 +65,14 @@ def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02) 
     if camera is None:
         if (root / "camera.yaml").is_file():
             cam_info = read_camera_yaml(root / "camera.yaml")
-            camera = _camera_from_dict(cam_info)
+            camera = _camera(root / "camera.yaml", *(cam_info[k] for k in ("fx", "fy", "cx", "cy", "width", "height")))
         else:
-            header = (root / "rgb.txt").read_text(errors="replace")[:400] + " " + root.name
+            header = read_text(root / "rgb.txt", "rgb list")[:400] + " " + root.name
             key = next((k for k in TUM_CAMERAS if k in header or k.replace("freiburg", "fr") in header), None)
             if key is None:
                 raise DataError(root, "no camera.yaml and no TUM 'freiburgN' camera named in rgb.txt or the folder name")
             w, h = _first_image_size(root / names[0])
-            camera = PinholeCamera.create(*TUM_CAMERAS[key], w, h)
+            camera = _camera(root / names[0], *TUM_CAMERAS[key], w, h)  # the TUM calibration must fit the image
     depth_scale = float(cam_info.get("depth_scale", 5000.0))
     depth_names = None
     if (root / "depth.txt").is_file():
@@ -85,11 +93,11 @@ def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02) 
 
     def load(i: int) -> Frame:
         img_path = root / names[i]
-        img = read_image_gray(img_path)
+        img = check_size(img_path, read_image_gray(img_path), (camera.height, camera.width))
         depth = None
         if depth_names is not None:
             if depth_names[i] is None:
-                raise DataError(root / "depth.txt", f"no depth within {max_diff} s of rgb frame {i} ({stamps[i]:.6f})")
+                raise DataError(root / "depth.txt", f"no depth within {max_diff} s of rgb frame {i} ({format_stamp(stamps[i])})")
             depth = read_depth_png(root / depth_names[i], depth_scale, img.shape)
         exp = None if exposures is None else float(exposures[i])
         return Frame(i, float(stamps[i]), img, camera, depth, exp, str(img_path))
@@ -98,21 +106,17 @@ def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02) 
 
 
 def _kitti_camera(calib_path, image_path) -> PinholeCamera:
-    with open(calib_path) as fh:
-        for k, line in enumerate(fh, start=1):
-            if line.startswith("P0:"):
-                vals = line.split()[1:]
-                if len(vals) != 12:
-                    raise DataError(calib_path, f"P0 needs 12 numbers, found {len(vals)}", k)
-                try:
-                    P = np.array([float(v) for v in vals]).reshape(3, 4)
-                except ValueError:
-                    raise DataError(calib_path, "P0 has a value that is not a number", k) from None
-                w, h = _first_image_size(image_path)
-                try:
-                    return PinholeCamera.create(P[0, 0], P[1, 1], P[0, 2], P[1, 2], w, h)
-                except ValueError as exc:
-                    raise DataError(calib_path, str(exc), k) from None
+    for k, line in data_lines(calib_path, "calib.txt"):
+        if line.startswith("P0:"):
+            vals = line.split()[1:]
+            if len(vals) != 12:
+                raise DataError(calib_path, f"P0 needs 12 numbers, found {len(vals)}", k)
+            try:
+                P = np.array([float(v) for v in vals]).reshape(3, 4)
+            except ValueError:
+                raise DataError(calib_path, "P0 has a value that is not a number", k) from None
+            w, h = _first_image_size(image_path)
+            return _camera(calib_path, P[0, 0], P[1, 1], P[0, 2], P[1, 2], w, h, k)
     raise DataError(calib_path, "no 'P0:' line")
 
 
@@ -120,16 +124,10 @@ def _kitti_poses(path) -> np.ndarray:
     from ..geometry.quaternion import from_matrix
 
     rows = []
-    with open(path) as fh:
-        for k, line in enumerate(fh, start=1):
-            vals = line.split()
-            if not vals:
-                continue
-            if len(vals) != 12:
-                raise DataError(path, f"expected 12 numbers (3x4 pose), found {len(vals)}", k)
-            T = np.array([float(v) for v in vals]).reshape(3, 4)
-            q = np.asarray(from_matrix(jnp.asarray(T[:, :3])))
-            rows.append(np.concatenate([T[:, 3], q]))
+    for k, vals in read_table(path, 12, "poses.txt (3x4 poses)"):
+        T = np.array(vals).reshape(3, 4)
+        q = np.asarray(from_matrix(jnp.asarray(T[:, :3])))
+        rows.append(np.concatenate([T[:, 3], q]))
     return np.array(rows)
 
 
@@ -174,36 +172,30 @@ def open_euroc(path) -> Sequence:
     if not csv.is_file():
         raise DataError(csv, "EuRoC cam0/data.csv not found")
     stamps, names, lines = [], [], []
-    with open(csv) as fh:
-        for k, line in enumerate(fh, start=1):
-            if line.startswith("#") or not line.strip():
-                continue
-            parts = [p.strip() for p in line.split(",")]
-            if len(parts) != 2:
-                raise DataError(csv, "expected 'timestamp_ns,filename'", k)
-            stamps.append(int(parts[0]) * 1e-9)
-            names.append(parts[1])
-            lines.append(k)
+    for k, line in data_lines(csv, "EuRoC cam0/data.csv"):
+        parts = [p.strip() for p in line.split(",")]
+        if len(parts) != 2 or not parts[0].isdigit():
+            raise DataError(csv, "expected 'timestamp_ns,filename'", k)
+        stamps.append(int(parts[0]) * 1e-9)
+        names.append(parts[1])
+        lines.append(k)
     stamps = check_stamps(csv, np.array(stamps), lines)
     sensor = cam_dir / "sensor.yaml"
-    if not sensor.is_file():
-        raise DataError(sensor, "EuRoC sensor.yaml not found")
-    text = sensor.read_text()
-    text = re.sub(r"^%YAML.*$", "", text, flags=re.M)
-    info = yaml.safe_load(text)
+    text = re.sub(r"^%YAML.*$", "", read_text(sensor, "EuRoC sensor.yaml"), flags=re.M)
     try:
+        info = yaml.safe_load(text)
         fu, fv, cu, cv = (float(v) for v in info["intrinsics"])
         w, h = (int(v) for v in info["resolution"])
-        camera = PinholeCamera.create(fu, fv, cu, cv, w, h)
-    except (KeyError, TypeError, ValueError) as exc:
-        raise DataError(sensor, f"bad intrinsics/resolution ({exc})") from None
+    except (KeyError, TypeError, ValueError, yaml.YAMLError) as exc:
+        raise DataError(sensor, f"bad intrinsics/resolution ({str(exc).splitlines()[0]})") from None
+    camera = _camera(sensor, fu, fv, cu, cv, w, h)
     T_BS = np.eye(4)
     if "T_BS" in info:
         T_BS = np.array(info["T_BS"]["data"], dtype=float).reshape(4, 4)
     gt = None
     gt_csv = root / "mav0" / "state_groundtruth_estimate0" / "data.csv"
     if gt_csv.is_file():
-        rows = np.loadtxt(gt_csv, delimiter=",", comments="#", usecols=range(8))
+        rows = _euroc_groundtruth(gt_csv)
         t_gt = rows[:, 0] * 1e-9
         body = [Pose.from_vector(jnp.asarray(np.r_[r[1:4], r[5:8], r[4]])) for r in rows]  # EuRoC stores qw first
         cam = Pose.from_matrix(jnp.asarray(T_BS))
@@ -215,6 +207,22 @@ def open_euroc(path) -> Sequence:
         return Frame(i, float(stamps[i]), read_image_gray(p), camera, None, None, str(p))
 
     return Sequence(root.name, root, camera, stamps, load, None, gt, None, False, "euroc")
+
+
+def _euroc_groundtruth(path) -> np.ndarray:
+    """The first 8 columns (t [ns], p xyz, q wxyz) of the rows of EuRoC's ground-truth csv."""
+    rows = []
+    for k, line in data_lines(path, "EuRoC ground truth"):
+        parts = line.split(",")
+        if len(parts) < 8:
+            raise DataError(path, f"expected at least 8 columns (t, p xyz, q wxyz), found {len(parts)}", k)
+        try:
+            rows.append([float(v) for v in parts[:8]])
+        except ValueError:
+            raise DataError(path, f"not a number in '{line[:60]}'", k) from None
+    if not rows:
+        raise DataError(path, "EuRoC ground truth has no rows")
+    return np.array(rows)
 
 
 def _dso_times(path, n_expected=None):
@@ -232,7 +240,7 @@ def _dso_times(path, n_expected=None):
 
 
 def _dso_camera(path, image_path) -> PinholeCamera:
-    lines = [ln.split() for ln in pathlib.Path(path).read_text().splitlines() if ln.strip()]
+    lines = [ln.split() for _, ln in data_lines(path, "camera.txt")]
     if not lines:
         raise DataError(path, "empty camera.txt")
     first = lines[0]
@@ -243,15 +251,15 @@ def _dso_camera(path, image_path) -> PinholeCamera:
     except ValueError:
         raise DataError(path, "first line must be '[Pinhole] fx fy cx cy [omega]'", 1) from None
     if len(lines) > 1:
-        w, h = int(lines[1][0]), int(lines[1][1])
+        try:
+            w, h = int(lines[1][0]), int(lines[1][1])
+        except (ValueError, IndexError):
+            raise DataError(path, "second line must be 'width height'", 2) from None
     else:
         w, h = _first_image_size(image_path)
     if cx < 1 and cy < 1:  # DSO's relative intrinsics (fraction of the image size, pixel corner origin)
         fx, fy, cx, cy = fx * w, fy * h, cx * w - 0.5, cy * h - 0.5
-    try:
-        return PinholeCamera.create(fx, fy, cx, cy, w, h)
-    except ValueError as exc:
-        raise DataError(path, str(exc), 1) from None
+    return _camera(path, fx, fy, cx, cy, w, h, 1)
 
 
 def open_dso(path) -> Sequence:
@@ -272,7 +280,7 @@ def open_dso(path) -> Sequence:
     gt = read_tum_trajectory(root / "groundtruth.txt") if (root / "groundtruth.txt").is_file() else None
 
     def load(i):
-        img = read_image_gray(files[i])
+        img = check_size(files[i], read_image_gray(files[i]), (camera.height, camera.width))
         depth = read_depth_png(depth_dir / files[i].name, 5000.0, img.shape) if has_depth else None
         exp = None if exposures is None else float(exposures[i])
         return Frame(i, float(stamps[i]), img, camera, depth, exp, str(files[i]))
@@ -284,7 +292,7 @@ def open_image_folder(path) -> Sequence:
     """A folder of images plus ``camera.yaml`` (``fx fy cx cy width height``, optional ``fps``)."""
     root = pathlib.Path(path)
     info = read_camera_yaml(root / "camera.yaml")
-    camera = _camera_from_dict(info)
+    camera = _camera(root / "camera.yaml", *(info[k] for k in ("fx", "fy", "cx", "cy", "width", "height")))
     files = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_EXT)
     if not files:
         raise DataError(root, "no images in folder")

@@ -6,6 +6,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ..io import principal_point_problem
+
 __all__ = ["PinholeCamera"]
 
 
@@ -31,6 +33,9 @@ class PinholeCamera(eqx.Module):
             raise ValueError(f"focal lengths must be positive, got fx={vals[0]}, fy={vals[1]}")
         if int(width) <= 0 or int(height) <= 0:
             raise ValueError(f"image size must be positive, got {width}x{height}")
+        problem = principal_point_problem(vals[2], vals[3], int(width), int(height))
+        if problem:
+            raise ValueError(problem)
         return PinholeCamera(*(jnp.asarray(v, dtype) for v in vals), int(width), int(height))
 
     def K(self) -> Float[Array, "3 3"]:

@@ -14,14 +14,15 @@ import numpy as np
 
 from ..blur import plane_depths_from_keyframe, render_blurry
 from ..geometry import PinholeCamera, Pose
-from ..image import delinearize, linearize
+from ..image import delinearize, from_uint16, linearize, to_uint16
 from ..io import TrajectoryWriter
 from .state import ExposureReport, FrameOutcome, Triptych
 
 __all__ = ["RunOutputs", "CSV_COLUMNS", "keyframe_image_path", "read_keyframe_image"]
 
 CSV_COLUMNS = ["index", "timestamp", "status", "rms", "n_finest", "blur_px", "hypothesis", "ms", "keyframe",
-               "exposure", "exposure_ms", "exposure_fraction", "sample_s", "sample_weight", "sample_dt_s", "speed_px_s"]
+               "exposure", "exposure_ms", "exposure_fraction", "sample_s", "sample_weight", "sample_dt_s", "speed_px_s",
+               "jump_px", "note"]
 EXPOSURE_HEADER = "timestamp start:tx ty tz qx qy qz qw end:tx ty tz qx qy qz qw (camera-to-world)"
 
 
@@ -30,14 +31,14 @@ def keyframe_image_path(out: pathlib.Path, stamp: float) -> pathlib.Path:
 
 
 def read_keyframe_image(out: pathlib.Path, stamp: float) -> np.ndarray | None:
-    """A keyframe image written by a run (float [0, 1]), or None when missing."""
+    """A keyframe image written by a run (float [0, 1]), or None when missing or unreadable."""
     path = keyframe_image_path(out, stamp)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
-    return None if img is None else img.astype(np.float32) / 65535.0
+    return None if img is None or img.dtype != np.uint16 or img.ndim != 2 else from_uint16(img)
 
 
 def _vec(p: Pose) -> np.ndarray:
-    return np.asarray(p.to_vector(), np.float64)
+    return np.asarray(p.to_vector(), np.float32)
 
 
 def _exposure_cells(e: ExposureReport | None) -> list:
@@ -52,25 +53,25 @@ def _exposure_cells(e: ExposureReport | None) -> list:
 
 
 def _csv_row(o: FrameOutcome) -> list:
+    """One frames.csv row; the fit (rms, jump_px) is written exactly, for --resume."""
     if o.result is None and o.status == "keyframe":  # the first frame
-        return [o.index, f"{o.timestamp:.6f}", "keyframe", 0.0, 0, 0.0, "", 0.0, 1, *_exposure_cells(o.exposure)]
+        return [o.index, f"{o.timestamp:.6f}", "keyframe", 0.0, 0, 0.0, "", 0.0, 1, *_exposure_cells(o.exposure), "", ""]
     diag = o.result.diagnostics if o.result is not None else {}
     levels = diag.get("levels") or [{}]
-    return [o.index, f"{o.timestamp:.6f}", o.status, f"{diag.get('rms', float('nan')):.5f}", levels[-1].get("n", 0),
+    rms = repr(o.fit.rms) if o.fit is not None else f"{diag.get('rms', float('nan')):.5f}"
+    jump = "" if o.fit is None or o.fit.jump_px is None else repr(o.fit.jump_px)
+    return [o.index, f"{o.timestamp:.6f}", o.status, rms, levels[-1].get("n", 0),
             f"{diag.get('blur_px', 0.0):.2f}", diag.get("hypothesis", ""), f"{1000 * o.track_seconds:.1f}", int(o.new_keyframe is not None),
-            *_exposure_cells(o.exposure)]
+            *_exposure_cells(o.exposure), jump, diag.get("implausible", "")]
 
 
 class RunOutputs:
     """Writers of one run folder. ``append``: continue the files of an earlier run (``--resume``);
-    otherwise they start afresh and keyframe images and triptychs of an earlier run are removed."""
+    otherwise they start afresh (``folder.clear_run`` removes what else an earlier run left)."""
 
     def __init__(self, out, camera: PinholeCamera, response_gamma: float, append: bool = False):
         self.out, self.camera, self.gamma = pathlib.Path(out), camera, response_gamma
         self.out.mkdir(parents=True, exist_ok=True)
-        if not append:
-            for stale in [*(self.out / "keyframes").glob("*.png"), *self.out.glob("triptych_*.png")]:
-                stale.unlink()
         self.triptychs = len(list(self.out.glob("triptych_*.png")))
         self.trajectory = TrajectoryWriter(self.out / "trajectory.txt", append=append)
         self.exposure = TrajectoryWriter(self.out / "exposure.txt", EXPOSURE_HEADER, append=append)
@@ -102,7 +103,7 @@ class RunOutputs:
     def save_keyframe_image(self, stamp: float, image: np.ndarray) -> None:
         path = keyframe_image_path(self.out, stamp)
         path.parent.mkdir(exist_ok=True)
-        cv2.imwrite(str(path), np.clip(np.round(image * 65535), 0, 65535).astype(np.uint16))
+        cv2.imwrite(str(path), to_uint16(image))
 
     def draw_triptych(self, t: Triptych) -> None:
         """Blurry input | our blur model applied to the deblurred image | deblurred image. Pixels the

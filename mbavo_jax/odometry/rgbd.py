@@ -5,7 +5,8 @@ keyframe (``tracking.track``), and decide whether it becomes the next keyframe (
 blur length, or too few visible points). A blurry frame that becomes a keyframe is deblurred with
 its estimated exposure path first; a keyframe made without a path (the first frame, a reset after
 drops) is deblurred once the first frame tracked against it gives the camera's velocity. A frame
-whose tracking fails is dropped; after ``reset_after_drops`` drops in a row the current frame
+whose tracking fails, or whose fit is implausible next to the frames before it (residual far above
+theirs, pose far from the prediction), is dropped; after ``reset_after_drops`` drops in a row the current frame
 becomes a keyframe at the last good pose. No file I/O happens here.
 """
 
@@ -19,12 +20,13 @@ import numpy as np
 from ..config import OdometryConfig, RunConfig, TrackerConfig
 from ..deblur import choose_deblur_n, deblur, exposure_blur_px
 from ..geometry import ExposureTrajectory, PinholeCamera, Pose
+from ..image import quantize16
 from ..tracking import Keyframe, Status, TrackResult, constant_velocity_guess, exposure_from_velocity, track
 from .exposure import ExposureEstimate, RawFrame, exposure_mode, pair_sample, pick_pair, prior_off
 from .stats import PointStats, keyframe_stats
-from .state import ExposureReport, FrameOutcome, KeyframeState, NewKeyframe, PendingDeblur, RunState, Triptych
+from .state import ExposureReport, Fit, FrameOutcome, KeyframeState, NewKeyframe, PendingDeblur, RunState, Triptych
 
-__all__ = ["RGBDPipeline", "PointStats", "needs_keyframe", "keyframe_stats"]
+__all__ = ["RGBDPipeline", "PointStats", "needs_keyframe", "keyframe_stats", "implausible"]
 
 
 def needs_keyframe(stats: PointStats, width: int, odo: OdometryConfig) -> bool:
@@ -35,6 +37,24 @@ def needs_keyframe(stats: PointStats, width: int, odo: OdometryConfig) -> bool:
     return bool(stats.visible < odo.keyframe_min_visible or flow > odo.keyframe_flow_max * width
                 or (flow > odo.keyframe_flow * width and stats.blur_px <= odo.keyframe_max_blur_px))
 
+
+def implausible(fit: Fit, history: tuple[Fit, ...], odo: OdometryConfig, steps: float = 1.0) -> str | None:
+    """Why a usable fit disagrees with the last ``reject_window`` accepted ones (None: it does not):
+    its RMS beyond ``reject_rms_ratio`` times their largest, or its distance from the prediction
+    beyond ``reject_jump_ratio`` times their median plus ``reject_jump_px``, per frame interval
+    predicted over (``steps``). Needs 3 of them."""
+    recent = history[-odo.reject_window:]
+    if len(recent) < 3:
+        return None
+    rms = max(h.rms for h in recent)
+    if odo.reject_rms_ratio > 0 and fit.rms > odo.reject_rms_ratio * rms:
+        return f"residual RMS {fit.rms / max(rms, 1e-12):.1f}x the largest of the last {len(recent)} frames"
+    jumps = [h.jump_px for h in recent if h.jump_px is not None]
+    if odo.reject_jump_ratio > 0 and fit.jump_px is not None and len(jumps) >= 3:
+        limit = (odo.reject_jump_ratio * float(np.median(jumps)) + odo.reject_jump_px) * max(steps, 1.0)
+        if fit.jump_px > limit:
+            return f"pose {fit.jump_px:.1f} px from the prediction (limit {limit:.1f} px)"
+    return None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,9 +111,10 @@ class RGBDPipeline:
     def keyframe_without_path(self, state: RunState, frame, T_world_kf: Pose) -> tuple[RunState, NewKeyframe]:
         """A keyframe at ``T_world_kf`` from a frame whose exposure path is not known yet: used as it
         is, and deblurred once the next frame tracked against it gives the velocity."""
-        kf = KeyframeState(Keyframe.create(frame.image, frame.depth, self.camera, self.config.tracker), T_world_kf, frame.timestamp)
+        image = quantize16(frame.image)
+        kf = KeyframeState(Keyframe.create(image, frame.depth, self.camera, self.config.tracker), T_world_kf, frame.timestamp)
         state = state.replace(keyframe=kf, pending=self.pending_of(frame), keyframes=state.keyframes + 1)
-        return state, NewKeyframe(frame.timestamp, T_world_kf, frame.image)
+        return state, NewKeyframe(frame.timestamp, T_world_kf, image)
 
     def _first(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
         """The first frame: the world frame, taken as sharp until its blur is known."""
@@ -115,27 +136,42 @@ class RGBDPipeline:
         return ExposureTrajectory(last, last), False
 
     def _track(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
-        replaced, t0 = (), time.perf_counter()
-        if frame.depth is not None and not np.isfinite(frame.depth).any():
-            result = None  # nothing to place the frame with
-        else:
+        replaced, t0, result, fit, informed = (), time.perf_counter(), None, None, False
+        if frame.depth is None or np.isfinite(frame.depth).any():  # else nothing to place the frame with
             init, informed = self.predict(state, frame)
-            first = result = track(state.keyframe.keyframe, frame.image, init, self.tracker_config(frame, informed), depth=frame.depth)
+            first = track(state.keyframe.keyframe, frame.image, init, self.tracker_config(frame, informed), depth=frame.depth)
+            result, fit = self.checked(state, frame, first, init.middle() if informed else None)
             if state.pending is not None and result.status.ok:
                 state, result, replaced = self.deblur_pending(state, frame, result)
                 informed = informed or result is not first  # tracked again from a velocity
+                fit = dataclasses.replace(fit, rms=float(result.diagnostics["rms"]))
         track_seconds = time.perf_counter() - t0
         if result is not None and result.status.ok:
-            state, outcome = self._tracked(state, frame, index, result, informed)
+            state, outcome = self._tracked(state, frame, index, result, informed, fit)
         else:
             state, outcome = self._dropped(state, frame, index, result)
-        return state, dataclasses.replace(outcome, replaced_images=replaced, track_seconds=track_seconds)
+        return state, dataclasses.replace(outcome, replaced_images=replaced, track_seconds=track_seconds, fit=fit)
+
+    def checked(self, state: RunState, frame, result: TrackResult, predicted: Pose | None) -> tuple[TrackResult, Fit | None]:
+        """A usable result's fit (``predicted``: the predicted T_kf_mid, None without a velocity),
+        and the result marked IMPLAUSIBLE, with the reason in its diagnostics, when it disagrees
+        with the frames before it (``implausible``)."""
+        if not result.status.ok:
+            return result, None
+        jump = None if predicted is None else keyframe_stats(state.keyframe.keyframe, result.trajectory, None, predicted).jump_px
+        fit, steps = Fit(float(result.diagnostics["rms"]), jump), 1.0
+        if len(state.mids) >= 2:  # frame intervals predicted over (more after an implausible frame)
+            steps = (frame.timestamp - state.mids[-1][0]) / max(state.mids[-1][0] - state.mids[-2][0], 1e-6)
+        reason = implausible(fit, state.fits, self.config.odometry, steps)
+        if reason is not None:
+            result = dataclasses.replace(result, status=Status.IMPLAUSIBLE, diagnostics={**result.diagnostics, "implausible": reason})
+        return result, fit
 
     def deblurred(self, image, depth, path: ExposureTrajectory) -> tuple[np.ndarray, int]:
-        """(sharp image, virtual frames used): ``image`` deconvolved along its exposure ``path``."""
+        """(sharp image as stored, virtual frames used): ``image`` deconvolved along its exposure ``path``."""
         n = choose_deblur_n(depth, self.camera, path, self.config.deblur)
         cfg = dataclasses.replace(self.config.deblur, n=n)
-        return deblur(image, depth, self.camera, path, cfg, self.config.tracker.response_gamma), n
+        return quantize16(deblur(image, depth, self.camera, path, cfg, self.config.tracker.response_gamma)), n
 
     def deblur_pending(self, state: RunState, frame, result: TrackResult):
         """The waiting keyframe deblurred along the constant-velocity path that this frame's motion
@@ -178,8 +214,8 @@ class RGBDPipeline:
             sample = pair_sample(*pair, self.camera, self.config.tracker, guess, odo.exposure_pair_ratio)
         return (*state.recent, current)[-odo.exposure_pair_frames:], sample
 
-    def _tracked(self, state: RunState, frame, index: int, result: TrackResult, informed: bool) -> tuple[RunState, FrameOutcome]:
-        """A tracked frame: its poses, a sample for an estimated exposure, perhaps a new keyframe."""
+    def _tracked(self, state: RunState, frame, index: int, result: TrackResult, informed: bool, fit: Fit) -> tuple[RunState, FrameOutcome]:
+        """A tracked frame: its poses, its fit remembered, a sample for an estimated exposure, perhaps a new keyframe."""
         T_w_kf, traj = state.keyframe.T_world_kf, result.trajectory
         T_w_mid = T_w_kf.compose(traj.middle())
         T_w_prev, dt = state.mids[-1][1], frame.timestamp - state.mids[-1][0]
@@ -188,7 +224,8 @@ class RGBDPipeline:
         recent, sample = self.exposure_pairing(state, frame, T_w_mid, speed, dt) if speed is not None else (state.recent, None)
         report = self.exposure_report(state, frame, sample, dt, speed)
         state = state.replace(mids=(*state.mids, (frame.timestamp, T_w_mid))[-2:], tracked=state.tracked + 1, consecutive_drops=0,
-                              exposure=report.estimate or state.exposure, recent=recent)
+                              exposure=report.estimate or state.exposure, recent=recent,
+                              fits=(*state.fits, fit)[-self.config.odometry.reject_window:])
         new = None
         if needs_keyframe(stats, self.camera.width, self.config.odometry) and frame.depth is not None:
             state, new = self._new_keyframe(state, frame, traj, T_w_mid, stats.blur_px)
@@ -199,7 +236,7 @@ class RGBDPipeline:
     def _new_keyframe(self, state: RunState, frame, traj: ExposureTrajectory, T_w_mid: Pose, blur: float):
         """This frame as the next keyframe, deblurred along its tracked exposure path ``traj`` (mean
         blur ``blur`` px) when blurred enough."""
-        sharp, triptych = frame.image, None
+        sharp, triptych = quantize16(frame.image), None
         if blur > self.config.odometry.deblur_min_blur_px and self.config.tracker.blur_aware:
             sharp, n = self.deblurred(frame.image, frame.depth, traj)
             if state.triptychs < self.config.odometry.triptychs:
@@ -210,15 +247,18 @@ class RGBDPipeline:
         return state, NewKeyframe(frame.timestamp, T_w_mid, sharp, triptych)
 
     def _dropped(self, state: RunState, frame, index: int, result: TrackResult | None) -> tuple[RunState, FrameOutcome]:
-        """No pose; the velocity is forgotten; after ``reset_after_drops`` drops in a row a frame with
-        depth and texture becomes a keyframe at the last good pose."""
+        """No pose; the velocity is forgotten, except after an implausible fit (an odd frame: the motion
+        goes on); after ``reset_after_drops`` drops in a row a frame with depth and texture becomes a
+        keyframe at the last good pose."""
         odo = self.config.odometry
-        state = state.replace(dropped=state.dropped + 1, consecutive_drops=state.consecutive_drops + 1, mids=state.mids[-1:])
+        odd = result is not None and result.status == Status.IMPLAUSIBLE
+        state = state.replace(dropped=state.dropped + 1, consecutive_drops=state.consecutive_drops + 1,
+                              mids=state.mids if odd else state.mids[-1:])
         new = None
         usable = frame.depth is not None and np.isfinite(frame.depth).any() and np.std(frame.image) > odo.reset_min_image_std
         if state.consecutive_drops >= odo.reset_after_drops and usable:
             state, new = self.keyframe_without_path(state, frame, state.mids[-1][1])
-            state = state.replace(consecutive_drops=0)
+            state = state.replace(consecutive_drops=0, fits=())  # a new start: earlier fits do not compare
         status = (result.status if result is not None else Status.TOO_FEW_POINTS).name.lower()
         report = self.exposure_report(state, frame, None, 0.0)
         return state, FrameOutcome(index, frame.timestamp, status, new_keyframe=new, result=result, exposure=report)

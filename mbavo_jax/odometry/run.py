@@ -9,21 +9,24 @@ from __future__ import annotations
 import csv
 import dataclasses
 import pathlib
+import sys
 
 import jax.numpy as jnp
 import numpy as np
-import yaml
 
-from ..config import RunConfig, as_dict
+from ..config import RunConfig
 from ..errors import DataError, MbavoError
 from ..geometry import Pose
-from ..io import read_tum_trajectory
+from ..image import quantize16
+from ..io import prepare_out_dir, read_tum_trajectory
 from ..progress import bar
-from ..tracking import Keyframe
+from ..tracking import Keyframe, Status
+from ..tracking.memory import check_memory
+from .exposure import RawFrame
+from .folder import check_resume, clear_run, reconcile, record_run
 from .outputs import RunOutputs, keyframe_image_path, read_keyframe_image
 from .rgbd import RGBDPipeline
-from .exposure import RawFrame
-from .state import FrameOutcome, KeyframeState, Pipeline, RunState
+from .state import Fit, FrameOutcome, KeyframeState, Pipeline, RunState
 
 __all__ = ["run_odometry", "resume_state"]
 
@@ -64,37 +67,75 @@ def _restore_exposure(state: RunState, out: pathlib.Path, seq, before: float, po
     return state.replace(recent=tuple(recent))
 
 
-def resume_state(out, seq, pipeline: Pipeline) -> tuple[RunState, int]:
-    """(state, index of the next frame) of the run in ``out``, or (a fresh state, 0) when it holds
-    no finished frame. The loop goes on after the last tracked frame or keyframe (a keyframe made
-    after drops comes later than the last tracked frame), with the last two mid poses as velocity."""
-    out = pathlib.Path(out)
-    if not ((out / "trajectory.txt").is_file() and (out / "keyframes.txt").is_file()):
-        return RunState(), 0
-    t_done, p_done = read_tum_trajectory(out / "trajectory.txt")
-    t_kf, p_kf = read_tum_trajectory(out / "keyframes.txt")
-    stamps = seq.timestamps
-    start = int(np.searchsorted(stamps, max(t_done[-1], t_kf[-1]) + 1e-6))
-    mids = tuple((float(t), _pose(p)) for t, p in zip(t_done[-2:], p_done[-2:]))
-    k = int(np.argmin(np.abs(stamps - t_kf[-1])))
-    image = read_keyframe_image(out, t_kf[-1])
+OK_STATUSES = {s.name.lower() for s in Status if s.ok}
+
+
+def _loop_counters(rows: list[dict]) -> dict:
+    """What the loop counted when it committed ``rows``: drops in a row, whether the velocity was
+    forgotten (a drop other than an implausible fit since the last tracked frame), and the fits
+    of the tracked frames since the last reset."""
+    drops, forgot, fits = 0, False, []
+    for r in rows:
+        if r["status"] in OK_STATUSES:
+            drops, forgot = 0, False
+            fits.append(Fit(float(r["rms"]), float(r["jump_px"]) if r.get("jump_px") else None))
+        elif r["status"] != "keyframe":
+            drops, forgot = drops + 1, forgot or r["status"] != Status.IMPLAUSIBLE.name.lower()
+            if r["keyframe"] == "1":  # a reset: a new start
+                drops, fits = 0, []
+    return {"consecutive_drops": drops, "forgot": forgot, "fits": tuple(fits)}
+
+
+def _keyframe_image(out: pathlib.Path, seq, k: int, stamp: float, pending: bool) -> np.ndarray:
+    """The image the run tracked against: the raw frame while it waits to be deblurred, else the
+    stored keyframe image."""
+    if pending:
+        return quantize16(seq[k].image)
+    image = read_keyframe_image(out, stamp)
     if image is None:
-        raise DataError(keyframe_image_path(out, t_kf[-1]), "keyframe image needed for --resume is missing")
-    cfg = pipeline.config
-    kf = KeyframeState(Keyframe.create(image, seq[k].depth, seq.camera, cfg.tracker), _pose(p_kf[-1]), float(t_kf[-1]))
-    triptychs = len(list(out.glob("triptych_*.png")))
-    state = RunState(keyframe=kf, mids=mids, keyframes=len(t_kf), tracked=len(t_done), triptychs=triptychs)
-    before = stamps[start] - 1e-6 if start < len(stamps) else np.inf
-    state = _restore_exposure(state, out, seq, before, {float(t): _pose(p) for t, p in zip(t_done, p_done)}, pipeline)
+        raise DataError(keyframe_image_path(out, stamp), "keyframe image needed for --resume is missing or unreadable "
+                        "(run without --resume to start afresh)")
+    return image
+
+
+def _records(out: pathlib.Path, rows: list[dict]):
+    """(stamps, poses) of trajectory.txt and keyframes.txt, which a run with committed ``rows`` has."""
+    for name in ("trajectory.txt", "keyframes.txt"):
+        if not (out / name).is_file():
+            raise DataError(out / name, f"missing, but frames.csv records {len(rows)} frames: cannot --resume "
+                            "(run without --resume to start afresh)")
+    return read_tum_trajectory(out / "trajectory.txt"), read_tum_trajectory(out / "keyframes.txt")
+
+
+def resume_state(out, seq, pipeline: Pipeline) -> tuple[RunState, int]:
+    """(state, index of the next frame) of the run in ``out``, cut back to its last committed frame
+    (``folder.reconcile``), or (a fresh state, 0) when it holds none. The state is the one the
+    loop had after that frame, so the resumed run goes on exactly as the uninterrupted one."""
+    out = pathlib.Path(out)
+    rows = reconcile(out)
+    if not rows:
+        if (out / "trajectory.txt").is_file() and len((out / "trajectory.txt").read_text().splitlines()) > 1:
+            raise DataError(out / "frames.csv", "missing or empty, so the run's frames are not known: cannot --resume "
+                            "(run without --resume to start afresh)")
+        return RunState(), 0
+    (t_done, p_done), (t_kf, p_kf) = _records(out, rows)
+    start, stamps, counters = int(rows[-1]["index"]) + 1, seq.timestamps, _loop_counters(rows)
+    k = int(np.argmin(np.abs(stamps - t_kf[-1])))
     # a keyframe made without an exposure path that no frame has tracked against yet is still the raw
     # image and waits to be deblurred: the first frame with nothing tracked after it, or a reset
-    # after drops (later than every tracked frame; the drops before it forgot the velocity)
+    # after drops (later than every tracked frame)
     reset = t_kf[-1] > t_done[-1] + 1e-6
-    if reset or (len(t_done) == 1 and abs(t_kf[-1] - t_done[0]) < 1e-6):
-        state = state.replace(pending=pipeline.pending_of(seq[k]))
-    if reset:
-        state = state.replace(mids=mids[-1:])
-    return state, start
+    pending = reset or (len(t_done) == 1 and abs(t_kf[-1] - t_done[0]) < 1e-6)
+    cfg = pipeline.config
+    image = _keyframe_image(out, seq, k, float(t_kf[-1]), pending and pipeline.pending_of(seq[k]) is not None)
+    kf = KeyframeState(Keyframe.create(image, seq[k].depth, seq.camera, cfg.tracker), _pose(p_kf[-1]), float(t_kf[-1]))
+    mids = tuple((float(t), _pose(p)) for t, p in zip(t_done[-2:], p_done[-2:]))
+    state = RunState(keyframe=kf, mids=mids[-1:] if counters["forgot"] or reset else mids, keyframes=len(t_kf), tracked=len(t_done),
+                     triptychs=len(list(out.glob("triptych_*.png"))), consecutive_drops=counters["consecutive_drops"],
+                     fits=counters["fits"][-cfg.odometry.reject_window:])
+    before = stamps[start] - 1e-6 if start < len(stamps) else np.inf
+    state = _restore_exposure(state, out, seq, before, {float(t): _pose(p) for t, p in zip(t_done, p_done)}, pipeline)
+    return state.replace(pending=pipeline.pending_of(seq[k]) if pending else None), start
 
 
 def _summary(state: RunState, frames: int, start: RunState, last: FrameOutcome | None) -> dict:
@@ -110,20 +151,40 @@ def _summary(state: RunState, frames: int, start: RunState, last: FrameOutcome |
     return out
 
 
+def _prepare(out: pathlib.Path, seq, config: RunConfig, resume: bool, resume_anyway: bool, pipeline: Pipeline,
+             progress: bool) -> tuple[RunState, int, str]:
+    """The run folder made ready, the loop's starting point and what the image size changes in
+    the settings ('' when nothing; printed with the progress): checks (memory, image size, for a
+    resume the sequence and settings) first, then a fresh folder or the reconciled earlier run."""
+    check_memory(config, seq.camera.height, seq.camera.width)
+    note = config.tracker.size_note(seq.camera.height, seq.camera.width)  # raises on images too small to track
+    prepare_out_dir(out)
+    if resume:
+        check_resume(out, seq, config, resume_anyway)
+    state, start = resume_state(out, seq, pipeline) if resume else (RunState(), 0)
+    if note and progress:
+        print(f"mbavo: note: {note}", file=sys.stderr)
+    if start == 0:
+        clear_run(out)
+    record_run(out, seq, config, start, resume and resume_anyway)
+    return state, start, note
+
+
 def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False, max_frames: int | None = None,
-                 progress: bool = True, pipeline: Pipeline | None = None) -> dict:
+                 progress: bool = True, pipeline: Pipeline | None = None, resume_anyway: bool = False) -> dict:
     """Track a whole RGB-D sequence into ``out`` and return a summary (frames, tracked, dropped,
-    keyframes, frame-drop rate). ``resume``: continue after the last frame of the run in ``out``.
-    ``pipeline``: the per-frame step (default: the RGB-D pipeline with ``config``; a given pipeline
-    brings its own config)."""
+    keyframes, frame-drop rate; ``note``: what the image size changed). ``resume``: continue after
+    the last committed frame of the run in ``out``, which must have been made on the same sequence
+    with the same settings unless ``resume_anyway``. ``pipeline``: the per-frame step (default: the RGB-D pipeline with
+    ``config``; a given pipeline brings its own config)."""
     out = pathlib.Path(out)
     if not seq.has_depth:
         raise MbavoError(f"{seq.path}: 'mbavo track' needs depth (an RGB-D sequence); the monocular back-end is not built yet")
+    if max_frames is not None and max_frames < 1:
+        raise MbavoError(f"--max-frames must be at least 1, got {max_frames}")
     pipeline = pipeline or RGBDPipeline(seq.camera, config)
     config = pipeline.config
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "config.yaml").write_text(yaml.safe_dump(as_dict(config), sort_keys=False))
-    state, start = resume_state(out, seq, pipeline) if resume else (RunState(), 0)
+    state, start, note = _prepare(out, seq, config, resume, resume_anyway, pipeline, progress)
     first, outcome = state, None
     n_total = len(seq) if max_frames is None else min(len(seq), max_frames)
     with RunOutputs(out, seq.camera, config.tracker.response_gamma, append=start > 0) as outputs, \
@@ -133,4 +194,4 @@ def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False
             outputs.write(outcome)
             pbar.set_postfix(status=outcome.status, keyframes=state.keyframes, dropped=state.dropped, refresh=False)
             pbar.update()
-    return _summary(state, n_total - start, first, outcome)
+    return {**_summary(state, n_total - start, first, outcome), **({"note": note} if note else {})}

@@ -17,7 +17,16 @@ from ..geometry import ExposureTrajectory, Pose
 from ..tracking import Keyframe, TrackResult
 from .exposure import ExposureEstimate, RawFrame
 
-__all__ = ["KeyframeState", "PendingDeblur", "RunState", "NewKeyframe", "Triptych", "ExposureReport", "FrameOutcome", "Pipeline"]
+__all__ = ["Fit", "KeyframeState", "PendingDeblur", "RunState", "NewKeyframe", "Triptych", "ExposureReport", "FrameOutcome", "Pipeline"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Fit:
+    """How well a tracked frame fitted: its residual RMS and how far (mean px) its pose lay from the
+    constant-velocity prediction (None: there was no velocity to predict with)."""
+
+    rms: float
+    jump_px: float | None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,6 +63,7 @@ class RunState:
     triptychs: int = 0
     exposure: ExposureEstimate | None = None  # when the exposure time is estimated
     recent: tuple[RawFrame, ...] = ()  # the last raw frames, for the estimate's pairs
+    fits: tuple[Fit, ...] = ()  # the last accepted frames' fits, for the plausibility checks
 
     def replace(self, **changes) -> "RunState":
         return dataclasses.replace(self, **changes)
@@ -108,6 +118,7 @@ class FrameOutcome:
     new_keyframe: NewKeyframe | None = None
     replaced_images: tuple[tuple[float, np.ndarray], ...] = ()  # (stamp, deblurred image) of an earlier keyframe
     result: TrackResult | None = None
+    fit: Fit | None = None  # the fit of a tracked (or implausible) frame
     exposure: ExposureReport | None = None
     seconds: float = 0.0  # the whole step
     track_seconds: float = 0.0  # tracking (and re-tracking after a pending deblur) only

@@ -21,6 +21,7 @@ import numpy as np
 
 from ..blur import blur_lengths, round_up_pow2
 from ..config import TrackerConfig
+from ..errors import ArgumentError
 from ..geometry.camera import PinholeCamera
 from ..geometry.pose import Pose
 from ..geometry.trajectory import ExposureTrajectory
@@ -42,6 +43,7 @@ class Status(enum.IntEnum):
     DIVERGED = 2  # non-finite values or an error far above the initial one
     TOO_FEW_POINTS = 3  # not enough valid residuals to constrain the 12 (+2) unknowns
     LOST = 4  # finite but the photometric error is too large: the frame does not match the keyframe
+    IMPLAUSIBLE = 5  # a usable fit that disagrees with the frames before it (set by the odometry loop, not by track)
 
     @property
     def ok(self) -> bool:
@@ -67,6 +69,7 @@ class Keyframe:
             raise ValueError(f"keyframe image is {img.shape[1]}x{img.shape[0]}, camera is {camera.width}x{camera.height}")
         if dep.shape != img.shape:
             raise ValueError(f"keyframe depth shape {dep.shape} differs from image shape {img.shape}")
+        config = config.for_image(*img.shape)
         images = pyramid(linearize(img, config.response_gamma), config.levels)
         depths = _depth_levels(dep, config.levels)
         pts = [select_points(np.asarray(images[l]), depths[l], config.points[l], config.cell[l], config.grad_threshold)
@@ -259,9 +262,13 @@ def _refuse(keyframe: Keyframe, init, t0: float) -> TrackResult:
 
 
 def _frame_image(frame, camera: PinholeCamera) -> np.ndarray:
+    """The frame as a float32 (H, W) image of the keyframe's size; non-finite pixels read as 0."""
+    if frame is None or np.ndim(frame) != 2:
+        raise ArgumentError(f"frame must be a grey image, a 2-D array of {camera.height}x{camera.width}, got "
+                            f"{'None' if frame is None else f'shape {np.shape(frame)}'}")
     image = np.asarray(frame, np.float32)
     if image.shape != (camera.height, camera.width):
-        raise ValueError(f"frame is {image.shape[1]}x{image.shape[0]}, keyframe is {camera.width}x{camera.height}")
+        raise ArgumentError(f"frame is {image.shape[1]}x{image.shape[0]}, keyframe is {camera.width}x{camera.height}")
     return image if np.all(np.isfinite(image)) else np.nan_to_num(image, nan=0.0, posinf=1.0, neginf=0.0)
 
 
@@ -275,6 +282,7 @@ def track(keyframe: Keyframe, frame, init: ExposureTrajectory | None = None, con
     """
     t0 = time.perf_counter()
     image = _frame_image(frame, keyframe.cameras[0])
+    config = config.for_image(*image.shape)
     init = ExposureTrajectory(Pose.identity(), Pose.identity()) if init is None else init
     if float(np.std(image)) < config.min_image_std or keyframe.n_points(0) < config.min_keyframe_points:
         return _refuse(keyframe, init, t0)

@@ -1,0 +1,145 @@
+"""A run folder's bookkeeping: what a run writes there, which sequence and settings it was made with
+(``run.yaml``), and reconciling its files after a kill.
+
+A frame is committed when its frames.csv row is on disk: ``RunOutputs.write`` writes the keyframe
+image first, then the trajectory, exposure and keyframe lines, and the row last. ``reconcile``
+cuts the other files back to the last committed frame, so ``--resume`` continues from a state in
+which every file agrees, wherever the run was stopped.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import os
+import pathlib
+import shutil
+
+import numpy as np
+import yaml
+
+from ..config import RunConfig, as_dict
+from ..errors import MbavoError
+
+__all__ = ["RUN_FILES", "clear_run", "sequence_fingerprint", "check_resume", "record_run", "reconcile", "committed_rows"]
+
+RUN_FILES = ("trajectory.txt", "exposure.txt", "keyframes.txt", "frames.csv", "config.yaml", "run.yaml", "trajectory.png",
+             "ape_over_time.png")
+TEXT_RECORDS = ("trajectory.txt", "exposure.txt", "keyframes.txt")  # stamped lines, cut back by ``reconcile``
+
+
+def clear_run(out: pathlib.Path) -> None:
+    """Remove what an earlier run wrote into ``out`` (its files, keyframe images, triptychs, resumed
+    configs); anything else in the folder is left alone."""
+    for name in RUN_FILES:
+        (out / name).unlink(missing_ok=True)
+    for stale in [*out.glob("triptych_*.png"), *out.glob("config.resumed_at_*.yaml")]:
+        stale.unlink()
+    if (out / "keyframes").is_dir():
+        shutil.rmtree(out / "keyframes")
+
+
+def sequence_fingerprint(seq) -> dict:
+    """What identifies a sequence: its folder, frame count, and a digest of its timestamps, camera
+    and first frame's image file."""
+    h = hashlib.sha256(np.asarray(seq.timestamps, np.float64).tobytes())
+    h.update(repr(sorted(seq.camera.as_dict().items())).encode())
+    first = pathlib.Path(seq[0].path) if len(seq) else None
+    if first is not None and first.is_file():
+        h.update(first.read_bytes())
+    return {"path": str(pathlib.Path(seq.path).resolve()), "frames": len(seq), "digest": h.hexdigest()[:16]}
+
+
+def _settings_changes(before: dict, after: dict) -> list[str]:
+    """``section.key: old -> new`` for every setting that differs."""
+    return [f"{s}.{k}: {v} -> {after.get(s, {}).get(k)}" for s, values in before.items() for k, v in values.items()
+            if after.get(s, {}).get(k) != v]
+
+
+def check_resume(out: pathlib.Path, seq, config: RunConfig, force: bool) -> None:
+    """Refuse (one line) to resume a run made on another sequence or with other settings, unless
+    ``force``. A run folder without ``run.yaml`` (older runs) is not checked."""
+    path = out / "run.yaml"
+    if force or not path.is_file():
+        return
+    record = yaml.safe_load(path.read_text()) or {}
+    first = record.get("segments", [{}])[0]
+    if record.get("sequence", {}).get("digest") != sequence_fingerprint(seq)["digest"]:
+        raise MbavoError(f"{out}: --resume of a run made on another sequence ({record.get('sequence', {}).get('path')}); "
+                         "use another --out, or --resume-anyway to continue regardless")
+    changes = _settings_changes(first.get("settings", {}), as_dict(config))
+    if changes:
+        raise MbavoError(f"{out}: --resume with other settings than the run's ({'; '.join(changes[:3])}"
+                         f"{'; ...' if len(changes) > 3 else ''}); use the same --config/--set, or --resume-anyway")
+
+
+def record_run(out: pathlib.Path, seq, config: RunConfig, start: int, forced: bool) -> None:
+    """Add this call's segment (first frame, settings, whether the checks were overridden) to
+    ``run.yaml``; the first segment's settings also go to ``config.yaml``, a resumed segment's with
+    other settings to ``config.resumed_at_<frame>.yaml``."""
+    path = out / "run.yaml"
+    record = yaml.safe_load(path.read_text()) if start > 0 and path.is_file() else None
+    record = record or {"sequence": sequence_fingerprint(seq), "segments": []}
+    settings = as_dict(config)
+    record["segments"].append({"first_frame": start, "resume_anyway": forced, "settings": settings})
+    if not record["segments"][1:]:
+        _write_atomic(out / "config.yaml", yaml.safe_dump(settings, sort_keys=False))
+    elif _settings_changes(record["segments"][0]["settings"], settings):
+        _write_atomic(out / f"config.resumed_at_{start}.yaml", yaml.safe_dump(settings, sort_keys=False))
+    _write_atomic(path, yaml.safe_dump(record, sort_keys=False))
+
+
+def _write_atomic(path: pathlib.Path, data: str | bytes) -> None:
+    """Replace ``path`` by ``data`` in one step (a kill leaves the old or the new file)."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(data.encode() if isinstance(data, str) else data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _complete_lines(path: pathlib.Path) -> bytes:
+    """The file's bytes up to its last newline (a line cut short by a kill is dropped)."""
+    data = path.read_bytes()
+    return data[: data.rfind(b"\n") + 1]
+
+
+def committed_rows(out: pathlib.Path) -> list[dict]:
+    """frames.csv's complete rows: one per committed frame."""
+    path = out / "frames.csv"
+    if not path.is_file():
+        return []
+    text = _complete_lines(path).decode("utf-8", errors="replace")
+    return [r for r in csv.DictReader(io.StringIO(text, newline="")) if None not in r and None not in r.values()]
+
+
+def _cut(path: pathlib.Path, last_stamp: float) -> None:
+    """Keep the comment lines of ``path`` and its complete lines stamped at most ``last_stamp``."""
+    if not path.is_file():
+        return
+    data = path.read_bytes()
+    keep = []
+    for line in data.splitlines(keepends=True):
+        try:
+            ok = line.startswith(b"#") or (line.endswith(b"\n") and float(line.split()[0]) <= last_stamp + 1e-7)
+        except (ValueError, IndexError):
+            ok = False
+        if ok:
+            keep.append(line)
+    if b"".join(keep) != data:
+        _write_atomic(path, b"".join(keep))
+
+
+def reconcile(out: pathlib.Path) -> list[dict]:
+    """Cut a run folder back to its last committed frame (the last complete frames.csv row): a
+    partial row and the text records stamped later go. Returns the committed rows."""
+    path = out / "frames.csv"
+    if path.is_file() and _complete_lines(path) != path.read_bytes():
+        _write_atomic(path, _complete_lines(path))
+    rows = committed_rows(out)
+    last = float(rows[-1]["timestamp"]) if rows else -np.inf
+    for name in TEXT_RECORDS:
+        _cut(out / name, last)
+    return rows

@@ -236,6 +236,8 @@ CASES = [
     ]],
     *[Case(f"track_out_{k}", ("track", "{seq}", "--out", out, "-q"), msg) for k, out, msg in OUTSIDE],
     Case("track_max_frames_0", (*TRACK, "--max-frames", "0"), "argument --max-frames: must be >= 1, got 0"),
+    Case("argparse_unknown_option", (*TRACK, "--bogus"), "unrecognized arguments: --bogus"),  # exit 1, as every error
+    Case("argparse_missing_out", ("track", "{seq}"), "the following arguments are required: --out"),
     Case("track_small_image", (*TRACK, "--set", "tracker.min_valid=1000"), "images are too small to track"),
     # 11. --resume of a run folder that cannot be continued
     Case("resume_without_keyframes_txt", (*TRACK, "--resume"), "{tmp}/run/keyframes.txt: missing, but frames.csv records 2 frames",
@@ -295,3 +297,26 @@ def test_frame_index_out_of_range_is_an_index_error_naming_the_sequence(sequence
             seq[i]
         assert isinstance(info.value, IndexError) and isinstance(info.value, MbavoError)
     assert [f.index for f in seq] == [0, 1, 2] and seq[-1].index == 2
+
+
+@pytest.mark.parametrize("values, expect", [
+    (dict(levels=0), "tracker.levels: must be >= 1, got 0"),
+    (dict(levels=-1), "tracker.levels: must be >= 1, got -1"),
+    # levels=2.5: the test session's type-checking hook refuses it before the dataclass does (the
+    # --set row track_set_tracker.levels=2.5 covers it)
+    (dict(huber=-1.0), "tracker.huber: must be > 0, got -1.0"),
+    (dict(huber=float("nan")), "tracker.huber: must be > 0, got nan"),
+    (dict(points=(0, 0, 0, 0)), "tracker.points: must be >= 1"),
+    (dict(cell=(0, 0, 0, 0)), "tracker.cell: must be >= 1"),
+    (dict(max_steps=(0, 1, 1, 1)), "tracker.max_steps: must be >= 1"),
+    (dict(rtol=float("nan")), "tracker.rtol: must be > 0, got nan"),
+    (dict(atol=float("nan")), "tracker.atol: must be > 0, got nan"),
+], ids=lambda v: str(v) if isinstance(v, str) else "-".join(f"{k}={x}" for k, x in v.items()))
+def test_tracker_settings_built_in_python_are_checked_too(values, expect):
+    """The API's TrackerConfig checks the same ranges as the files and --set (one ConfigError line)."""
+    from mbavo_jax.config import TrackerConfig
+    from mbavo_jax.errors import ConfigError
+
+    with pytest.raises(ConfigError) as info:
+        TrackerConfig(**values)
+    assert expect in str(info.value) and "\n" not in str(info.value)

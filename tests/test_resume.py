@@ -166,6 +166,29 @@ def test_resumed_run_equals_the_uninterrupted_one_wherever_it_was_killed(point, 
     assert_same_run(uninterrupted, out)
 
 
+@pytest.mark.slow
+def test_resume_checks_the_settings_and_records_an_override(sequences, tmp_path):
+    """--resume with other settings is refused; --resume-anyway goes on and says so in run.yaml (a
+    segment per call) and config.resumed_at_<frame>.yaml, while config.yaml keeps the first settings."""
+    import yaml
+
+    from mbavo_jax.errors import MbavoError
+
+    seq = open_sequence(sequences["main"])
+    out, first = tmp_path / "run", config_of(seq)
+    other = first.replace(tracker=dict(huber=0.05))
+    run_odometry(seq, out, first, max_frames=4, progress=False)
+    with pytest.raises(MbavoError, match="other settings than the run's \\(tracker.huber"):
+        run_odometry(seq, out, other, resume=True, max_frames=6, progress=False)
+    assert len(committed_rows(out)) == 4  # the refusal changed nothing
+    run_odometry(seq, out, other, resume=True, resume_anyway=True, max_frames=6, progress=False)
+    record = yaml.safe_load((out / "run.yaml").read_text())
+    assert [(s["first_frame"], s["resume_anyway"]) for s in record["segments"]] == [(0, False), (4, True)]
+    assert record["segments"][1]["settings"]["tracker"]["huber"] == 0.05
+    assert load_config(out / "config.yaml") == first and load_config(out / "config.resumed_at_4.yaml") == other
+    assert len(committed_rows(out)) == 6
+
+
 def without(seq, k: int):
     """``seq`` with frame k left out (what a run that drops it at best sees)."""
     keep = [i for i in range(len(seq)) if i != k]
@@ -203,3 +226,25 @@ def test_track_without_an_image_is_one_clear_error():
     for frame, text in ((None, "got None"), (np.zeros(64, np.float32), "got shape (64,)"), (np.zeros((40, 64), np.float32), "frame is 64x40")):
         with pytest.raises(ArgumentError, match=re.escape(text)):
             track(kf, frame)
+
+
+def test_reconcile_cuts_a_folder_back_to_its_last_complete_row(tmp_path):
+    """A kill in the middle of writing: a row cut short, a trajectory line of the uncommitted frame,
+    a half-written exposure line. reconcile keeps the committed frames only, in every file."""
+    from mbavo_jax.odometry.folder import reconcile
+    from mbavo_jax.odometry.outputs import CSV_COLUMNS
+
+    pose = "0 0 0 0 0 0 1"
+    row = lambda i, t: ",".join([str(i), t, "converged", "0.01"] + [""] * (len(CSV_COLUMNS) - 4)) + "\r\n"
+    (tmp_path / "frames.csv").write_bytes((",".join(CSV_COLUMNS) + "\r\n" + row(0, "1.000000") + row(1, "1.033333")
+                                           + row(2, "1.066667")[:9]).encode())
+    (tmp_path / "trajectory.txt").write_text(f"# h\n1.000000 {pose}\n1.033333 {pose}\n1.066667 {pose}\n")
+    (tmp_path / "exposure.txt").write_text(f"# h\n1.000000 {pose} {pose}\n1.033333 {pose} {pose}\n1.066667 0 0")
+    (tmp_path / "keyframes.txt").write_text(f"# h\n1.000000 {pose}\n1.066667 {pose}\n")
+    rows = reconcile(tmp_path)
+    assert [r["index"] for r in rows] == ["0", "1"] and [r["index"] for r in committed_rows(tmp_path)] == ["0", "1"]
+    assert (tmp_path / "frames.csv").read_bytes().endswith(row(1, "1.033333").encode())
+    assert list(read_tum_trajectory(tmp_path / "trajectory.txt")[0]) == [1.0, 1.033333]
+    assert list(read_exposure_file(tmp_path / "exposure.txt")[0]) == [1.0, 1.033333]
+    assert list(read_tum_trajectory(tmp_path / "keyframes.txt")[0]) == [1.0]
+    assert reconcile(tmp_path) == rows  # nothing more to cut

@@ -31,7 +31,7 @@ from mbavo_jax.odometry.outputs import RunOutputs
 from mbavo_jax.synthetic import PRESETS, generate_sequence
 
 FRAMES = 12
-ODD = 6  # the frame an odd-frame sequence spoils
+ODD = 7  # the frame an odd-frame sequence spoils
 
 
 class Killed(BaseException):
@@ -198,8 +198,8 @@ def without(seq, k: int):
 @pytest.mark.slow
 def test_odd_frames_are_dropped_as_implausible_not_tracked_metres_off(sequences, uninterrupted, tmp_path):
     """A frame with its top quarter black (on disk), its top half NaN, or from another sequence:
-    dropped as implausible (never a keyframe), and the ATE within 2x that of the clean sequence
-    without that frame (its best: the whole clean sequence's is printed beside it)."""
+    dropped as implausible (never a keyframe), and the ATE within 2x the clean run's and within 2x
+    that of the clean sequence without that frame (what dropping it costs at best)."""
     clean_seq, other = open_sequence(sequences["main"]), open_sequence(sequences["other"])
     ate = lambda out: evaluate_run(out, clean_seq.groundtruth)["ate_rmse_m"]
     for name, seq in (("clean", clean_seq), ("clean_without", without(clean_seq, ODD))):
@@ -214,7 +214,7 @@ def test_odd_frames_are_dropped_as_implausible_not_tracked_metres_off(sequences,
         assert rows[ODD]["status"] == "implausible" and rows[ODD]["keyframe"] == "0" and rows[ODD]["note"], (kind, rows[ODD])
         assert sum(r["status"] == "implausible" for r in rows) == 1, (kind, [r["status"] for r in rows])
         print(f"{kind}: ATE {ate(out):.4f} m; clean without frame {ODD} {reference:.4f} m, whole clean {ate(tmp_path / 'clean'):.4f} m")
-        assert ate(out) <= 2 * reference, (kind, ate(out), reference)
+        assert ate(out) <= 2 * reference and ate(out) <= 2 * ate(tmp_path / "clean"), (kind, ate(out), reference)
 
 
 def test_track_without_an_image_is_one_clear_error():

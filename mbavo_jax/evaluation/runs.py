@@ -11,7 +11,9 @@ from ..errors import MbavoError
 from ..io import read_tum_trajectory
 from .metrics import aligned_positions, ape, frame_drop_rate
 
-__all__ = ["evaluate_run"]
+__all__ = ["evaluate_run", "RUN_PLOTS"]
+
+RUN_PLOTS = ("trajectory.png", "ape_over_time.png")  # what ``evaluate_run(..., plots=True)`` writes
 
 
 def evaluate_run(run, groundtruth, frame_stamps=None, config: EvalConfig = EvalConfig(), plots: bool = False) -> dict:
@@ -37,6 +39,6 @@ def evaluate_run(run, groundtruth, frame_stamps=None, config: EvalConfig = EvalC
         from . import plots as plot
 
         i_est, _, ref_xyz, est_xyz = aligned_positions(t_gt, p_gt, t_est, p_est, config.align, config.t_max_diff)
-        plot.plot_trajectories(run / "trajectory.png", ref_xyz, est_xyz, f"ATE rmse {res['rmse']:.4f} m ({config.align.upper()})")
-        plot.plot_error_over_time(run / "ape_over_time.png", t_est[i_est], np.asarray(res["errors"]), "APE over time")
+        plot.plot_trajectories(run / RUN_PLOTS[0], ref_xyz, est_xyz, f"ATE rmse {res['rmse']:.4f} m ({config.align.upper()})")
+        plot.plot_error_over_time(run / RUN_PLOTS[1], t_est[i_est], np.asarray(res["errors"]), "APE over time")
     return out

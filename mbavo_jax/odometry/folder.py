@@ -21,11 +21,11 @@ import yaml
 
 from ..config import RunConfig, as_dict
 from ..errors import MbavoError
+from ..evaluation.runs import RUN_PLOTS
 
 __all__ = ["RUN_FILES", "clear_run", "sequence_fingerprint", "check_resume", "record_run", "reconcile", "committed_rows"]
 
-RUN_FILES = ("trajectory.txt", "exposure.txt", "keyframes.txt", "frames.csv", "config.yaml", "run.yaml", "trajectory.png",
-             "ape_over_time.png")
+RUN_FILES = ("trajectory.txt", "exposure.txt", "keyframes.txt", "frames.csv", "config.yaml", "run.yaml", *RUN_PLOTS)
 TEXT_RECORDS = ("trajectory.txt", "exposure.txt", "keyframes.txt")  # stamped lines, cut back by ``reconcile``
 
 
@@ -100,19 +100,21 @@ def _write_atomic(path: pathlib.Path, data: str | bytes) -> None:
     os.replace(tmp, path)
 
 
-def _complete_lines(path: pathlib.Path) -> bytes:
-    """The file's bytes up to its last newline (a line cut short by a kill is dropped)."""
-    data = path.read_bytes()
+def _complete_lines(data: bytes) -> bytes:
+    """``data`` up to its last newline (a line cut short by a kill is dropped)."""
     return data[: data.rfind(b"\n") + 1]
+
+
+def _rows(data: bytes) -> list[dict]:
+    """The complete rows of frames.csv's bytes ``data``: one per committed frame."""
+    text = _complete_lines(data).decode("utf-8", errors="replace")
+    return [r for r in csv.DictReader(io.StringIO(text, newline="")) if None not in r and None not in r.values()]
 
 
 def committed_rows(out: pathlib.Path) -> list[dict]:
     """frames.csv's complete rows: one per committed frame."""
     path = out / "frames.csv"
-    if not path.is_file():
-        return []
-    text = _complete_lines(path).decode("utf-8", errors="replace")
-    return [r for r in csv.DictReader(io.StringIO(text, newline="")) if None not in r and None not in r.values()]
+    return _rows(path.read_bytes()) if path.is_file() else []
 
 
 def _cut(path: pathlib.Path, last_stamp: float) -> None:
@@ -136,9 +138,10 @@ def reconcile(out: pathlib.Path) -> list[dict]:
     """Cut a run folder back to its last committed frame (the last complete frames.csv row): a
     partial row and the text records stamped later go. Returns the committed rows."""
     path = out / "frames.csv"
-    if path.is_file() and _complete_lines(path) != path.read_bytes():
-        _write_atomic(path, _complete_lines(path))
-    rows = committed_rows(out)
+    data = path.read_bytes() if path.is_file() else b""
+    if _complete_lines(data) != data:
+        _write_atomic(path, _complete_lines(data))
+    rows = _rows(data)
     last = float(rows[-1]["timestamp"]) if rows else -np.inf
     for name in TEXT_RECORDS:
         _cut(out / name, last)

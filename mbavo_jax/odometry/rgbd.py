@@ -136,30 +136,38 @@ class RGBDPipeline:
         return ExposureTrajectory(last, last), False
 
     def _track(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
-        replaced, t0, result, fit, informed = (), time.perf_counter(), None, None, False
+        replaced, t0, result, fit, stats, informed = (), time.perf_counter(), None, None, None, False
         if frame.depth is None or np.isfinite(frame.depth).any():  # else nothing to place the frame with
             init, informed = self.predict(state, frame)
             first = track(state.keyframe.keyframe, frame.image, init, self.tracker_config(frame, informed), depth=frame.depth)
-            result, fit = self.checked(state, frame, first, init.middle() if informed else None)
+            stats = self.frame_stats(state, first, init.middle() if informed else None) if first.status.ok else None
+            result, fit = self.checked(state, frame, first, stats, informed)
             if state.pending is not None and result.status.ok:
                 state, result, replaced = self.deblur_pending(state, frame, result)
                 informed = informed or result is not first  # tracked again from a velocity
                 fit = dataclasses.replace(fit, rms=float(result.diagnostics["rms"]))
+                stats = self.frame_stats(state, result, None) if replaced else stats  # the keyframe was replaced
         track_seconds = time.perf_counter() - t0
         if result is not None and result.status.ok:
-            state, outcome = self._tracked(state, frame, index, result, informed, fit)
+            state, outcome = self._tracked(state, frame, index, result, informed, fit, stats)
         else:
             state, outcome = self._dropped(state, frame, index, result)
         return state, dataclasses.replace(outcome, replaced_images=replaced, track_seconds=track_seconds, fit=fit)
 
-    def checked(self, state: RunState, frame, result: TrackResult, predicted: Pose | None) -> tuple[TrackResult, Fit | None]:
-        """A usable result's fit (``predicted``: the predicted T_kf_mid, None without a velocity),
-        and the result marked IMPLAUSIBLE, with the reason in its diagnostics, when it disagrees
-        with the frames before it (``implausible``)."""
+    def frame_stats(self, state: RunState, result: TrackResult, predicted: Pose | None) -> PointStats:
+        """:class:`PointStats` of a tracking result on the current keyframe: the motion since the last
+        tracked frame and the distance from the ``predicted`` T_kf_mid (None: no prediction)."""
+        kf = state.keyframe
+        return keyframe_stats(kf.keyframe, result.trajectory, kf.T_world_kf.inverse().compose(state.mids[-1][1]), predicted)
+
+    def checked(self, state: RunState, frame, result: TrackResult, stats: PointStats | None,
+                informed: bool) -> tuple[TrackResult, Fit | None]:
+        """A usable result's fit (its distance from the prediction only when ``informed`` by a
+        velocity), and the result marked IMPLAUSIBLE, with the reason in its diagnostics, when it
+        disagrees with the frames before it (``implausible``)."""
         if not result.status.ok:
             return result, None
-        jump = None if predicted is None else keyframe_stats(state.keyframe.keyframe, result.trajectory, None, predicted).jump_px
-        fit, steps = Fit(float(result.diagnostics["rms"]), jump), 1.0
+        fit, steps = Fit(float(result.diagnostics["rms"]), stats.jump_px if informed else None), 1.0
         if len(state.mids) >= 2:  # frame intervals predicted over (more after an implausible frame)
             steps = (frame.timestamp - state.mids[-1][0]) / max(state.mids[-1][0] - state.mids[-2][0], 1e-6)
         reason = implausible(fit, state.fits, self.config.odometry, steps)
@@ -214,12 +222,13 @@ class RGBDPipeline:
             sample = pair_sample(*pair, self.camera, self.config.tracker, guess, odo.exposure_pair_ratio)
         return (*state.recent, current)[-odo.exposure_pair_frames:], sample
 
-    def _tracked(self, state: RunState, frame, index: int, result: TrackResult, informed: bool, fit: Fit) -> tuple[RunState, FrameOutcome]:
-        """A tracked frame: its poses, its fit remembered, a sample for an estimated exposure, perhaps a new keyframe."""
+    def _tracked(self, state: RunState, frame, index: int, result: TrackResult, informed: bool, fit: Fit,
+                 stats: PointStats) -> tuple[RunState, FrameOutcome]:
+        """A tracked frame (``stats``: its :meth:`frame_stats`): its poses, its fit remembered, a
+        sample for an estimated exposure, perhaps a new keyframe."""
         T_w_kf, traj = state.keyframe.T_world_kf, result.trajectory
         T_w_mid = T_w_kf.compose(traj.middle())
-        T_w_prev, dt = state.mids[-1][1], frame.timestamp - state.mids[-1][0]
-        stats = keyframe_stats(state.keyframe.keyframe, traj, T_w_kf.inverse().compose(T_w_prev))
+        dt = frame.timestamp - state.mids[-1][0]
         speed = stats.motion_px / dt if informed and dt > 0 and self.exposure_mode(frame) == "estimate" else None
         recent, sample = self.exposure_pairing(state, frame, T_w_mid, speed, dt) if speed is not None else (state.recent, None)
         report = self.exposure_report(state, frame, sample, dt, speed)

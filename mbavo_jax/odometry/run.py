@@ -6,7 +6,6 @@ rebuilds the loop's state from a run folder so that the rest of the run goes as 
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import pathlib
 import sys
@@ -35,21 +34,11 @@ def _pose(v) -> Pose:
     return Pose.from_vector(jnp.asarray(v, jnp.float32))
 
 
-def _exposure_rows(out: pathlib.Path, before: float) -> list[dict]:
-    """frames.csv rows of frames stamped before ``before`` (none when the file is missing)."""
-    path = out / "frames.csv"
-    if not path.is_file():
-        return []
-    with open(path, newline="") as fh:
-        return [r for r in csv.DictReader(fh) if float(r["timestamp"]) < before]
-
-
-def _restore_exposure(state: RunState, out: pathlib.Path, seq, before: float, poses: dict, pipeline: Pipeline) -> RunState:
-    """The exposure estimate's samples and the raw frames kept for pairing, as frames.csv records
-    them up to the frame stamped ``before`` (``poses``: stamp -> T_world_mid of tracked frames)."""
+def _restore_exposure(state: RunState, rows: list[dict], seq, poses: dict, pipeline: Pipeline) -> RunState:
+    """The exposure estimate's samples and the raw frames kept for pairing, as the committed
+    frames.csv ``rows`` record them (``poses``: stamp -> T_world_mid of tracked frames)."""
     if not hasattr(pipeline, "estimate"):
         return state
-    rows = _exposure_rows(out, before)
     est = pipeline.estimate(state)
     samples = tuple((float(r["sample_s"]), float(r["sample_weight"]), float(r["sample_dt_s"])) for r in rows if r.get("sample_s"))
     if any(r.get("exposure") == "estimate" for r in rows):
@@ -86,11 +75,11 @@ def _loop_counters(rows: list[dict]) -> dict:
     return {"consecutive_drops": drops, "forgot": forgot, "fits": tuple(fits)}
 
 
-def _keyframe_image(out: pathlib.Path, seq, k: int, stamp: float, pending: bool) -> np.ndarray:
-    """The image the run tracked against: the raw frame while it waits to be deblurred, else the
+def _keyframe_image(out: pathlib.Path, frame, stamp: float, pending: bool) -> np.ndarray:
+    """The image the run tracked against: the raw ``frame`` while it waits to be deblurred, else the
     stored keyframe image."""
     if pending:
-        return quantize16(seq[k].image)
+        return quantize16(frame.image)
     image = read_keyframe_image(out, stamp)
     if image is None:
         raise DataError(keyframe_image_path(out, stamp), "keyframe image needed for --resume is missing or unreadable "
@@ -119,23 +108,23 @@ def resume_state(out, seq, pipeline: Pipeline) -> tuple[RunState, int]:
                             "(run without --resume to start afresh)")
         return RunState(), 0
     (t_done, p_done), (t_kf, p_kf) = _records(out, rows)
-    start, stamps, counters = int(rows[-1]["index"]) + 1, seq.timestamps, _loop_counters(rows)
-    k = int(np.argmin(np.abs(stamps - t_kf[-1])))
+    start, counters = int(rows[-1]["index"]) + 1, _loop_counters(rows)
+    k = int(np.argmin(np.abs(seq.timestamps - t_kf[-1])))
     # a keyframe made without an exposure path that no frame has tracked against yet is still the raw
     # image and waits to be deblurred: the first frame with nothing tracked after it, or a reset
     # after drops (later than every tracked frame)
     reset = t_kf[-1] > t_done[-1] + 1e-6
     pending = reset or (len(t_done) == 1 and abs(t_kf[-1] - t_done[0]) < 1e-6)
-    cfg = pipeline.config
-    image = _keyframe_image(out, seq, k, float(t_kf[-1]), pending and pipeline.pending_of(seq[k]) is not None)
-    kf = KeyframeState(Keyframe.create(image, seq[k].depth, seq.camera, cfg.tracker), _pose(p_kf[-1]), float(t_kf[-1]))
+    cfg, frame = pipeline.config, seq[k]
+    waiting = pipeline.pending_of(frame) if pending else None
+    image = _keyframe_image(out, frame, float(t_kf[-1]), waiting is not None)
+    kf = KeyframeState(Keyframe.create(image, frame.depth, seq.camera, cfg.tracker), _pose(p_kf[-1]), float(t_kf[-1]))
     mids = tuple((float(t), _pose(p)) for t, p in zip(t_done[-2:], p_done[-2:]))
     state = RunState(keyframe=kf, mids=mids[-1:] if counters["forgot"] or reset else mids, keyframes=len(t_kf), tracked=len(t_done),
                      triptychs=len(list(out.glob("triptych_*.png"))), consecutive_drops=counters["consecutive_drops"],
                      fits=counters["fits"][-cfg.odometry.reject_window:])
-    before = stamps[start] - 1e-6 if start < len(stamps) else np.inf
-    state = _restore_exposure(state, out, seq, before, {float(t): _pose(p) for t, p in zip(t_done, p_done)}, pipeline)
-    return state.replace(pending=pipeline.pending_of(seq[k]) if pending else None), start
+    state = _restore_exposure(state, rows, seq, {float(t): _pose(p) for t, p in zip(t_done, p_done)}, pipeline)
+    return state.replace(pending=waiting), start
 
 
 def _summary(state: RunState, frames: int, start: RunState, last: FrameOutcome | None) -> dict:

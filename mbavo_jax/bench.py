@@ -279,8 +279,8 @@ def _bench_data(preset: str, cfg: BenchConfig, frames: int, quiet: bool = False,
     suffix = "" if depth_model == "exact" else f"_{depth_model}"
     label = preset if scene == "room" else f"{preset}_{scene}"
     data = pathlib.Path("runs") / f"bench_{label}_{cfg.width}x{cfg.height}_seed{cfg.seed}{suffix}"
-    if (not (data / "exposure.txt").is_file() or len(open_sequence(data)) < frames
-            or "depth_sigma" not in open_sequence(data).meta):
+    seq = open_sequence(data) if (data / "exposure.txt").is_file() else None
+    if seq is None or len(seq) < frames or "depth_sigma" not in seq.meta:
         synth = SynthConfig(**{**PRESETS[preset], "frames": frames, "width": cfg.width, "height": cfg.height, "seed": cfg.seed,
                                "depth_model": depth_model, "scene": scene})
         generate_sequence(synth, data, progress=not quiet)
@@ -514,10 +514,18 @@ def format_odometry_table(res: dict) -> str:
     return "\n".join(lines)
 
 
-def main_odometry(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
-    """``mbavo bench odometry``: generated sequences at each blur preset plus the blurred TUM clip."""
+def tum_blurred(cfg: BenchConfig, quiet: bool = False) -> pathlib.Path:
+    """``runs/bench_tum_blurred``: the TUM clip ``cfg.tum`` blurred by ``mbavo synth --from`` (20 px), made once."""
     from .synthetic import blur_real_sequence
 
+    out = pathlib.Path("runs") / "bench_tum_blurred"
+    if not (out / "exposure.txt").is_file():
+        blur_real_sequence(open_sequence(cfg.tum), out, blur_px=20.0, progress=not quiet)
+    return out
+
+
+def main_odometry(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
+    """``mbavo bench odometry``: generated sequences at each blur preset plus the blurred TUM clip."""
     methods = parse_methods(cfg.methods, cfg.no_peers)
     seqs = {}
     for preset in filter(None, cfg.presets.split(",")):
@@ -528,10 +536,7 @@ def main_odometry(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> 
         for preset in filter(None, cfg.scene_presets.split(",")):
             seqs[f"{preset}_{scene}"] = _bench_data(preset, cfg, cfg.frames, quiet, scene=scene)
     if cfg.tum:
-        tum_out = pathlib.Path("runs") / "bench_tum_blurred"
-        if not (tum_out / "exposure.txt").is_file():
-            blur_real_sequence(open_sequence(cfg.tum), tum_out, blur_px=20.0, progress=not quiet)
-        seqs["tum_blurred"] = tum_out
+        seqs["tum_blurred"] = tum_blurred(cfg, quiet)
     seqs = _with_hidden_exposure(seqs, cfg.hide_exposure)
     root = pathlib.Path(cfg.out)
     res = run_odometry_benchmark(seqs, root, progress=not quiet, depth_weight=cfg.depth_weight, methods=methods,

@@ -7,11 +7,13 @@ Building the parser and rejecting arguments import no JAX; each command imports 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import signal
 import sys
 
-from .config import PRESETS, BenchConfig, DeblurConfig, SynthConfig, add_arguments, from_arguments
+from .config import (AT_LEAST_1, FINITE, POSITIVE, PRESETS, BenchConfig, DeblurConfig, OdometryConfig, SynthConfig, add_arguments,
+                     from_arguments)
 from .errors import MbavoError as UserError  # every user-facing error: one line, exit status 1
 from .methods import ODOMETRY_METHODS
 
@@ -29,24 +31,24 @@ class _Parser(argparse.ArgumentParser):
 
 
 def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1."""
+    """argparse type: a whole number >= 1 (the settings' ``AT_LEAST_1``)."""
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+        raise argparse.ArgumentTypeError(f"expected a whole number {AT_LEAST_1.text}, got {text!r}") from None
+    if not AT_LEAST_1.ok(value):
+        raise argparse.ArgumentTypeError(f"must be {AT_LEAST_1.text}, got {value}")
     return value
 
 
 def positive_float(text: str) -> float:
-    """argparse type: a finite number > 0."""
+    """argparse type: a finite number > 0 (the settings' ``FINITE`` and ``POSITIVE``)."""
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
-    if not (value > 0 and value != float("inf")):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+        raise argparse.ArgumentTypeError(f"expected a number {POSITIVE.text}, got {text!r}") from None
+    if not (FINITE.ok(value) and POSITIVE.ok(value)):
+        raise argparse.ArgumentTypeError(f"must be a {FINITE.text} number {POSITIVE.text}, got {text}")
     return value
 
 
@@ -180,6 +182,8 @@ def _cmd_track(args) -> int:
     from .evaluation import evaluate_run
 
     seq = open_sequence(args.sequence, args.kind)
+    if args.mode:
+        args.set = [*(args.set or []), f"odometry.mode={args.mode}"]
     config = _run_config(args, seq)
     from .odometry import run_odometry
 
@@ -209,7 +213,7 @@ def _cmd_deblur(args) -> int:
     from .deblur import deblur, psnr, ssim
     from .evaluation import associate
     from .geometry import ExposureTrajectory, Pose
-    from .io import format_stamp, prepare_out_dir, read_exposure_file, read_image_gray
+    from .io import format_stamp, prepare_out_dir, read_image_gray
 
     seq = open_sequence(args.sequence)
     if not 0 <= args.frame < len(seq):
@@ -217,8 +221,7 @@ def _cmd_deblur(args) -> int:
     frame = seq[args.frame]
     if frame.depth is None:
         raise UserError(f"{seq.path}: deblurring needs depth")
-    source = _exposure_source(args, seq.path)
-    stamps, starts, ends = read_exposure_file(source)
+    source, (stamps, starts, ends) = _exposure_paths(args, seq)
     tol = EvalConfig().t_max_diff
     _, match = associate(np.array([frame.timestamp]), stamps, tol)
     if len(match) == 0:
@@ -229,7 +232,8 @@ def _cmd_deblur(args) -> int:
     traj = ExposureTrajectory(P(starts[j]), P(ends[j]))
     sharp = np.asarray(deblur(frame.image, frame.depth, seq.camera, traj, cfg, float(seq.meta.get("response_gamma", 1.0))))
     if not np.isfinite(sharp).all():
-        raise UserError(f"{frame.path}: deblurring gave non-finite values; nothing written (check the depth and {source})")
+        raise UserError(f"{frame.path}: deblurring gave non-finite values; nothing written "
+                        f"(check the depth and the exposure paths of {source})")
     name = f"{frame.timestamp:.6f}.png"
     cv2.imwrite(str(out / name), np.clip(sharp * 255, 0, 255).astype(np.uint8))
     res = {"frame": args.frame, "output": str(out / name)}
@@ -242,16 +246,16 @@ def _cmd_deblur(args) -> int:
     return 0
 
 
-def _exposure_source(args, root):
-    """deblur's exposure file: --exposure, else the sequence's groundtruth_exposure.txt or exposure.txt."""
-    import pathlib
+def _exposure_paths(args, seq):
+    """deblur's exposure paths (stamps, start (N, 7), end (N, 7)) and where they come from: the file
+    --exposure, else the sequence (its groundtruth_exposure.txt or exposure.txt, read by its loader)."""
+    from .io import read_exposure_file
 
     if args.exposure:
-        return pathlib.Path(args.exposure)
-    found = [pathlib.Path(root) / n for n in ("groundtruth_exposure.txt", "exposure.txt") if (pathlib.Path(root) / n).is_file()]
-    if not found:
-        raise UserError(f"{root}: no groundtruth_exposure.txt or exposure.txt (give --exposure FILE, e.g. a 'mbavo track' exposure.txt)")
-    return found[0]
+        return args.exposure, read_exposure_file(args.exposure)
+    if seq.exposure_paths is None:
+        raise UserError(f"{seq.path}: no groundtruth_exposure.txt or exposure.txt (give --exposure FILE, e.g. a 'mbavo track' exposure.txt)")
+    return seq.path, seq.exposure_paths
 
 
 def _cmd_demo(args) -> int:
@@ -291,6 +295,10 @@ def _cmd_bench(args) -> int:
 
     if args.what == "tracking":
         return bench.main_tracking(cfg, args.data, args.format, args.quiet)
+    if args.what == "mono":
+        from .bench_mono import main_mono
+
+        return main_mono(cfg, args.format, args.quiet)
     return bench.main_odometry(cfg, args.format, args.quiet)
 
 
@@ -355,9 +363,10 @@ def _add_synth(sub) -> None:
 
 
 def _add_bench(sub) -> None:
-    p = sub.add_parser("bench", help="benchmarks: 'tracking' (frame pairs, vs Open3D/OpenCV) and 'odometry' (whole sequences, ATE)",
+    p = sub.add_parser("bench", help="benchmarks: 'tracking' (frame pairs, vs Open3D/OpenCV), 'odometry' (whole RGB-D sequences, ATE) and "
+                       "'mono' (the monocular system vs n = 1 and RGB-D)",
                        description="odometry methods: " + ", ".join(ODOMETRY_METHODS))
-    p.add_argument("what", choices=["tracking", "odometry"])
+    p.add_argument("what", choices=["tracking", "odometry", "mono"])
     p.add_argument("--data", help="tracking: a generated sequence (default: generate runs/bench_<preset>_<w>x<h>_seed<s>)")
     add_arguments(p, BenchConfig, skip=("no_peers",))
     p.add_argument("--no-peers", dest="no_peers", action="store_true", default=None, help="skip Open3D and OpenCV")
@@ -367,8 +376,8 @@ def _add_bench(sub) -> None:
 
 
 def _add_track(sub) -> None:
-    p = sub.add_parser("track", help="motion-blur-aware RGB-D visual odometry over a sequence")
-    p.add_argument("sequence", help="sequence folder (TUM RGB-D, mbavo synth output, DSO with depth/)")
+    p = sub.add_parser("track", help="motion-blur-aware visual odometry over a sequence (RGB-D with depth, else monocular)")
+    p.add_argument("sequence", help="sequence folder (TUM RGB-D, mbavo synth output, KITTI, EuRoC, DSO, images + camera.yaml)")
     p.add_argument("--out", required=True, help="output folder (trajectory.txt, exposure.txt, keyframes.txt, plots)")
     _config_flags(p)
     p.add_argument("--resume", action="store_true",
@@ -376,6 +385,8 @@ def _add_track(sub) -> None:
     p.add_argument("--resume-anyway", action="store_true",
                    help="--resume even with another sequence or other settings (recorded in OUT/run.yaml)")
     p.add_argument("--max-frames", type=positive_int, help="stop after this many frames")
+    mode = {f.name: f for f in dataclasses.fields(OdometryConfig)}["mode"]
+    p.add_argument("--mode", choices=mode.metadata["choices"], help=f"odometry.mode: {mode.metadata['help']}")
     p.add_argument("--kind", default="auto", choices=KINDS)
     _format_flag(p)
     _quiet_flag(p, "no progress bar")

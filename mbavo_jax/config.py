@@ -22,7 +22,7 @@ from .errors import ConfigError
 
 __all__ = [
     "setting", "TrackerConfig", "OdometryConfig", "DeblurConfig", "EvalConfig", "RunConfig", "SynthConfig",
-    "BenchConfig", "PRESETS", "DEPTH_SIGMA", "load_config", "default_yaml", "settings_markdown", "add_arguments",
+    "BenchConfig", "MonoConfig", "PRESETS", "DEPTH_SIGMA", "load_config", "default_yaml", "settings_markdown", "add_arguments",
     "from_arguments", "as_dict", "calibration_of",
 ]
 
@@ -235,6 +235,8 @@ class OdometryConfig(Settings):
 
     section: typing.ClassVar[str] = "odometry"
 
+    mode: str = setting("auto", "rgbd: track with the sequence's depth; mono: images only (the depth is not read); auto: rgbd when "
+                        "the sequence has depth", choices=("auto", "rgbd", "mono"))
     keyframe_flow: float = setting(0.1, "new keyframe when the mean point flow exceeds this fraction of the image width", POSITIVE)
     keyframe_max_blur_px: float = setting(float("inf"), "... unless the frame is blurred more than this (mean px): wait for a sharper one", POSITIVE)
     keyframe_flow_max: float = setting(0.15, "... but no longer than until the flow exceeds this fraction of the width", POSITIVE)
@@ -284,6 +286,34 @@ class EvalConfig(Settings):
 
 
 @dataclasses.dataclass(frozen=True)
+class MonoConfig(Settings):
+    """The monocular system (``mbavo track --mode mono``): initialisation from images, candidate
+    points traced along epipolar lines, and the windowed photometric bundle adjustment (DSO's)."""
+
+    section: typing.ClassVar[str] = "mono"
+
+    # --- the window and its bundle adjustment (mono.ba)
+    window: int = setting(7, "keyframes in the bundle-adjustment window (DSO's 7)", at_least(2))
+    points: int = setting(2000, "active points in the window, padded to this many (DSO's 2000)", AT_LEAST_1)
+    ba_iterations: int = setting(6, "Levenberg-Marquardt iterations of one bundle adjustment", AT_LEAST_1)
+    ba_huber: float = setting(9.0 / 255.0, "Huber threshold of the photometric residuals on [0, 1] intensities", POSITIVE)
+    ba_outlier: float = setting(12.0 / 255.0, "a point-keyframe pattern whose RMS residual exceeds this is an outlier", POSITIVE)
+    ba_lambda: float = setting(1e-4, "initial Levenberg-Marquardt damping (relative to the diagonal)", POSITIVE)
+    # --- candidate (immature) points (mono.candidates)
+    candidates: int = setting(1500, "candidate points selected on each new keyframe (DSO's 1500)", AT_LEAST_1)
+    trace_outlier: float = setting(16.0 / 255.0, "a candidate whose best match along its epipolar line has a larger RMS pattern residual is an outlier", POSITIVE)
+    ready_interval: float = setting(1.0, "a candidate joins the window once its inverse-depth interval is at most this fraction of its midpoint", POSITIVE)
+    # --- initialisation (mono.init)
+    init_min_parallax_deg: float = setting(0.5, "initialise once the median parallax angle of the tracked points exceeds this", POSITIVE)
+    init_min_tracks: int = setting(80, "fewer tracked corners than this: too little texture to initialise", at_least(8))
+    init_max_frames: int = setting(60, "start initialising again from a later frame after this many frames without success", AT_LEAST_1)
+    init_corners: int = setting(1000, "at most this many corners tracked from the reference frame (spread over the image)", at_least(8))
+    init_corner_contrast: float = setting(8.0 / 255.0, "a corner needs about this step contrast on [0, 1] intensities (above noise)", POSITIVE)
+    init_ransac_px: float = setting(2.0, "essential-matrix RANSAC: largest distance (px) of an inlier from its epipolar line", POSITIVE)
+    init_min_inlier_ratio: float = setting(0.6, "fewer essential-matrix inliers than this fraction of the tracks: geometry failed", FRACTION)
+
+
+@dataclasses.dataclass(frozen=True)
 class RunConfig:
     """The sections of a config file (``configs/default.yaml``): one per settings class."""
 
@@ -291,6 +321,7 @@ class RunConfig:
     odometry: OdometryConfig = dataclasses.field(default_factory=OdometryConfig)
     deblur: DeblurConfig = dataclasses.field(default_factory=DeblurConfig)
     evaluation: EvalConfig = dataclasses.field(default_factory=EvalConfig)
+    mono: MonoConfig = dataclasses.field(default_factory=MonoConfig)
 
     def replace(self, **sections) -> "RunConfig":
         """A copy with fields of sections replaced: ``cfg.replace(tracker=dict(n=32))``."""
@@ -348,7 +379,8 @@ class BenchConfig(Settings):
     preset: str = setting("strong,none", "tracking: comma-separated blur presets to generate and run")
     presets: str = setting("none,mild,strong,extreme", "odometry: blur presets")
     sensor_presets: str = setting("strong,extreme", "odometry: presets generated again with Kinect-class depth ('' to skip)")
-    tum: str = setting("../shared/data/tum_fr1_xyz_head37", "odometry: real RGB-D clip to blur ('' to skip)")
+    tum: str = setting("../shared/data/tum_fr1_xyz_head37", "odometry, mono: real RGB-D clip to blur ('' to skip)")
+    kitti: str = setting("../shared/data/kitti07_head160", "mono: real monocular clip ('' to skip)")
     width: int = setting(640, "image width of generated sequences", at_least(16))
     height: int = setting(480, "image height of generated sequences", at_least(16))
     seed: int = setting(0, "seed of generated sequences", NONNEG)

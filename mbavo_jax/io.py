@@ -19,9 +19,13 @@ __all__ = [
     "read_tum_trajectory",
     "write_tum_trajectory",
     "TrajectoryWriter",
+    "PlyWriter",
+    "read_ply",
     "read_exposure_file",
     "write_exposure_file",
     "read_camera_yaml",
+    "read_camera",
+    "checked_camera",
     "write_camera_yaml",
     "read_image_gray",
     "read_depth_png",
@@ -55,9 +59,11 @@ def read_text(path, what: str) -> str:
         raise DataError(path, f"byte 0x{data[exc.start]:02x} is not UTF-8 text (save it as UTF-8)", line) from None
 
 
-def data_lines(path, what: str) -> list[tuple[int, str]]:
-    """(line number, stripped text) of each line of a UTF-8 text file that is neither blank nor a '#' comment."""
-    text = read_text(path, what).replace("\r\n", "\n").replace("\r", "\n")  # universal newlines, as open() reads
+def data_lines(path, what: str, text: str | None = None) -> list[tuple[int, str]]:
+    """(line number, stripped text) of each line of a UTF-8 text file that is neither blank nor a '#'
+    comment. ``text``: the file's text, when :func:`read_text` already read it."""
+    text = read_text(path, what) if text is None else text
+    text = text.replace("\r\n", "\n").replace("\r", "\n")  # universal newlines, as open() reads
     lines = (line.strip() for line in text.split("\n"))
     return [(k, s) for k, s in enumerate(lines, start=1) if s and not s.startswith("#")]
 
@@ -84,13 +90,17 @@ def prepare_out_dir(path, what: str = "--out") -> pathlib.Path:
     return path
 
 
-def read_table(path, ncols: int | tuple[int, ...], what: str):
-    """Yield (line_number, float columns) of a whitespace/comma table, skipping '#' comments."""
+def read_table(path, ncols: int | tuple[int, ...], what: str, at_least: bool = False):
+    """Yield (line_number, float columns) of a whitespace/comma table, skipping '#' comments.
+    ``ncols``: the column counts allowed; with ``at_least``, the fewest (the first ``ncols`` columns
+    are read, the rest ignored)."""
     allowed = (ncols,) if isinstance(ncols, int) else ncols
     for k, s in data_lines(path, what):
         parts = s.replace(",", " ").split()
+        if at_least and len(parts) > min(allowed):
+            parts = parts[: min(allowed)]
         if len(parts) not in allowed:
-            exp = " or ".join(str(a) for a in allowed)
+            exp = ("at least " if at_least else "") + " or ".join(str(a) for a in allowed)
             raise DataError(path, f"expected {exp} columns, found {len(parts)}", k)
         try:
             vals = [float(p) for p in parts]
@@ -196,6 +206,44 @@ class TrajectoryWriter:
         self.close()
 
 
+class PlyWriter:
+    """A point cloud file (PLY, ASCII: x y z intensity) that grows: points are appended and the
+    vertex count in the fixed-width header is rewritten, each call flushed."""
+
+    HEADER = "ply\nformat ascii 1.0\nelement vertex {:012d}\nproperty float x\nproperty float y\nproperty float z\n" \
+             "property float intensity\nend_header\n"
+
+    def __init__(self, path, append: bool = False):
+        self.path = pathlib.Path(path)
+        if append and self.path.is_file():
+            self.count = read_ply(self.path)[0].shape[0]
+            self._fh = open(self.path, "r+")
+        else:
+            self.count = 0
+            self._fh = open(self.path, "w+")
+            self._fh.write(self.HEADER.format(0))
+        self._fh.seek(0, 2)
+
+    def write(self, xyz, intensity) -> None:
+        xyz, intensity = np.asarray(xyz, np.float32).reshape(-1, 3), np.asarray(intensity, np.float32).reshape(-1)
+        self._fh.writelines(f"{x:.6g} {y:.6g} {z:.6g} {i:.4f}\n" for (x, y, z), i in zip(xyz.tolist(), intensity.tolist()))
+        self.count += len(xyz)
+        self._fh.seek(0)
+        self._fh.write(self.HEADER.format(self.count))
+        self._fh.seek(0, 2)
+        self._fh.flush()
+
+    def close(self) -> None:
+        self._fh.close()
+
+
+def read_ply(path) -> tuple[np.ndarray, np.ndarray]:
+    """(xyz (N, 3), intensity (N,)) of a PLY file written by :class:`PlyWriter`."""
+    text = read_text(path, "point cloud").split("end_header\n", 1)
+    rows = np.loadtxt(text[1].splitlines(), dtype=np.float64, ndmin=2) if len(text) == 2 and text[1].strip() else np.zeros((0, 4))
+    return rows[:, :3], rows[:, 3]
+
+
 def read_exposure_file(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Read ``timestamp`` + start ``tx ty tz qx qy qz qw`` + end ``tx ty tz qx qy qz qw`` (15 columns).
 
@@ -254,11 +302,22 @@ def _depth_sigma(path, ds) -> list[float]:
     return [float(ds[0]), float(ds[1])]
 
 
-def read_camera_yaml(path) -> dict:
-    """Camera YAML: ``fx fy cx cy width height`` required; optional ``depth_scale``,
-    ``exposure_ms``, ``fps``, ``response_gamma``, ``depth_sigma`` ([a, b] of the depth noise
-    σ(z) = a + b·(z − 0.4)² m). Every value is checked (numbers, ranges, the principal point inside
-    the image); a DataError names the file and the key."""
+def checked_camera(where, fx, fy, cx, cy, width, height, line: int | None = None):
+    """``PinholeCamera.create``, its complaint about the values a DataError naming ``where`` (the file
+    they come from) and ``line``."""
+    from .geometry.camera import PinholeCamera  # geometry.camera imports this module
+
+    try:
+        return PinholeCamera.create(fx, fy, cx, cy, width, height)
+    except ValueError as exc:
+        raise DataError(where, str(exc), line) from None
+
+
+def read_camera(path):
+    """Camera YAML as (PinholeCamera, its values): ``fx fy cx cy width height`` required; optional
+    ``depth_scale``, ``exposure_ms``, ``fps``, ``response_gamma``, ``depth_sigma`` ([a, b] of the
+    depth noise σ(z) = a + b·(z − 0.4)² m). Every value is checked (numbers, ranges, the camera's
+    intrinsics by :func:`checked_camera`); a DataError names the file and the key."""
     path = pathlib.Path(path)
     text = read_text(path, "camera file")
     try:
@@ -273,12 +332,15 @@ def read_camera_yaml(path) -> dict:
     for k, rule in CAMERA_RULES.items():
         if k in data:
             data[k] = _camera_number(path, k, data[k], rule)
-    problem = principal_point_problem(data["cx"], data["cy"], data["width"], data["height"])
-    if problem:
-        raise DataError(path, problem)
+    camera = checked_camera(path, *(data[k] for k in CAMERA_KEYS))
     if "depth_sigma" in data:
         data["depth_sigma"] = _depth_sigma(path, data["depth_sigma"])
-    return data
+    return camera, data
+
+
+def read_camera_yaml(path) -> dict:
+    """The checked values of a camera YAML (:func:`read_camera`)."""
+    return read_camera(path)[1]
 
 
 def write_camera_yaml(path, **values) -> None:
@@ -340,11 +402,12 @@ def read_depth_png(path, scale: float = 5000.0, shape: tuple[int, int] | None = 
     return out
 
 
-def read_file_list(path, what: str = "file list") -> list[tuple[int, float, str]]:
-    """TUM-style ``timestamp filename`` list: returns (line, stamp, relative path), checked finite and sorted."""
+def read_file_list(path, what: str = "file list", text: str | None = None) -> list[tuple[int, float, str]]:
+    """TUM-style ``timestamp filename`` list: returns (line, stamp, relative path), checked finite and
+    sorted. ``text``: the file's text, when :func:`read_text` already read it."""
     path = pathlib.Path(path)
     out = []
-    for k, s in data_lines(path, what):
+    for k, s in data_lines(path, what, text):
         parts = s.split()
         if len(parts) < 2:
             raise DataError(path, "expected 'timestamp filename'", k)

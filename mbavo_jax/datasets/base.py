@@ -34,7 +34,8 @@ class Frame:
 
 @dataclasses.dataclass
 class Sequence:
-    """A lazily loaded sequence. ``frame_loader(i)`` reads frame i from disk on demand.
+    """A lazily loaded sequence. ``frame_loader(i)`` reads frame i from disk on demand; ``seq[i]``
+    also checks that its image has the camera's size (loaders leave that check to it).
 
     ``groundtruth``: (stamps (M,), poses (M, 7) [t, q], camera-to-world) or None.
     ``exposure_paths``: (stamps, start (N, 7), end (N, 7)) camera-to-world, or None.

@@ -13,11 +13,11 @@ from ..errors import DataError
 from ..evaluation.associate import associate
 from ..geometry.camera import PinholeCamera
 from ..io import (
-    check_size,
     check_stamps,
+    checked_camera,
     data_lines,
     format_stamp,
-    read_camera_yaml,
+    read_camera,
     read_depth_png,
     read_exposure_file,
     read_file_list,
@@ -39,43 +39,36 @@ TUM_CAMERAS = {
 IMAGE_EXT = (".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
 
 
-def _camera(where, fx, fy, cx, cy, width, height, line: int | None = None) -> PinholeCamera:
-    """``PinholeCamera.create``, its complaint about the values a DataError naming ``where`` (the file they come from)."""
-    try:
-        return PinholeCamera.create(fx, fy, cx, cy, width, height)
-    except ValueError as exc:
-        raise DataError(where, str(exc), line) from None
-
-
 def _first_image_size(path) -> tuple[int, int]:
     img = read_image_gray(path)
     return img.shape[1], img.shape[0]
 
 
-def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02) -> Sequence:
-    """TUM RGB-D layout: ``rgb.txt``, optional ``depth.txt`` (associated within ``max_diff`` s),
+def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02, depth: bool = True) -> Sequence:
+    """TUM RGB-D layout: ``rgb.txt``, optional ``depth.txt`` (associated within ``max_diff`` s; not
+    read when ``depth`` is false),
     ``groundtruth.txt``, exposure paths (``groundtruth_exposure.txt``, else ``exposure.txt``) and
     exposure times (``times.txt``, else camera.yaml's ``exposure_ms``); camera from ``camera.yaml``
     or the TUM calibration named in ``rgb.txt``'s header / the folder name (freiburg1/2/3)."""
     root = pathlib.Path(path)
-    rgb = read_file_list(root / "rgb.txt", "rgb list")
+    rgb_text = read_text(root / "rgb.txt", "rgb list")
+    rgb = read_file_list(root / "rgb.txt", "rgb list", rgb_text)
     stamps = np.array([s for _, s, _ in rgb])
     names = [n for _, _, n in rgb]
     cam_info: dict = {}
     if camera is None:
         if (root / "camera.yaml").is_file():
-            cam_info = read_camera_yaml(root / "camera.yaml")
-            camera = _camera(root / "camera.yaml", *(cam_info[k] for k in ("fx", "fy", "cx", "cy", "width", "height")))
+            camera, cam_info = read_camera(root / "camera.yaml")
         else:
-            header = read_text(root / "rgb.txt", "rgb list")[:400] + " " + root.name
+            header = rgb_text[:400] + " " + root.name
             key = next((k for k in TUM_CAMERAS if k in header or k.replace("freiburg", "fr") in header), None)
             if key is None:
                 raise DataError(root, "no camera.yaml and no TUM 'freiburgN' camera named in rgb.txt or the folder name")
             w, h = _first_image_size(root / names[0])
-            camera = _camera(root / names[0], *TUM_CAMERAS[key], w, h)  # the TUM calibration must fit the image
+            camera = checked_camera(root / names[0], *TUM_CAMERAS[key], w, h)  # the TUM calibration must fit the image
     depth_scale = float(cam_info.get("depth_scale", 5000.0))
     depth_names = None
-    if (root / "depth.txt").is_file():
+    if depth and (root / "depth.txt").is_file():
         dl = read_file_list(root / "depth.txt", "depth list")
         dstamps = np.array([s for _, s, _ in dl])
         i_rgb, i_depth = associate(stamps, dstamps, max_diff)
@@ -93,12 +86,12 @@ def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02) 
 
     def load(i: int) -> Frame:
         img_path = root / names[i]
-        img = check_size(img_path, read_image_gray(img_path), (camera.height, camera.width))
+        img = read_image_gray(img_path)  # its size is checked by Sequence.__getitem__
         depth = None
         if depth_names is not None:
             if depth_names[i] is None:
                 raise DataError(root / "depth.txt", f"no depth within {max_diff} s of rgb frame {i} ({format_stamp(stamps[i])})")
-            depth = read_depth_png(root / depth_names[i], depth_scale, img.shape)
+            depth = read_depth_png(root / depth_names[i], depth_scale, (camera.height, camera.width))
         exp = None if exposures is None else float(exposures[i])
         return Frame(i, float(stamps[i]), img, camera, depth, exp, str(img_path))
 
@@ -116,7 +109,7 @@ def _kitti_camera(calib_path, image_path) -> PinholeCamera:
             except ValueError:
                 raise DataError(calib_path, "P0 has a value that is not a number", k) from None
             w, h = _first_image_size(image_path)
-            return _camera(calib_path, P[0, 0], P[1, 1], P[0, 2], P[1, 2], w, h, k)
+            return checked_camera(calib_path, P[0, 0], P[1, 1], P[0, 2], P[1, 2], w, h, k)
     raise DataError(calib_path, "no 'P0:' line")
 
 
@@ -188,7 +181,7 @@ def open_euroc(path) -> Sequence:
         w, h = (int(v) for v in info["resolution"])
     except (KeyError, TypeError, ValueError, yaml.YAMLError) as exc:
         raise DataError(sensor, f"bad intrinsics/resolution ({str(exc).splitlines()[0]})") from None
-    camera = _camera(sensor, fu, fv, cu, cv, w, h)
+    camera = checked_camera(sensor, fu, fv, cu, cv, w, h)
     T_BS = np.eye(4)
     if "T_BS" in info:
         T_BS = np.array(info["T_BS"]["data"], dtype=float).reshape(4, 4)
@@ -211,15 +204,7 @@ def open_euroc(path) -> Sequence:
 
 def _euroc_groundtruth(path) -> np.ndarray:
     """The first 8 columns (t [ns], p xyz, q wxyz) of the rows of EuRoC's ground-truth csv."""
-    rows = []
-    for k, line in data_lines(path, "EuRoC ground truth"):
-        parts = line.split(",")
-        if len(parts) < 8:
-            raise DataError(path, f"expected at least 8 columns (t, p xyz, q wxyz), found {len(parts)}", k)
-        try:
-            rows.append([float(v) for v in parts[:8]])
-        except ValueError:
-            raise DataError(path, f"not a number in '{line[:60]}'", k) from None
+    rows = [vals for _, vals in read_table(path, 8, "EuRoC ground truth", at_least=True)]
     if not rows:
         raise DataError(path, "EuRoC ground truth has no rows")
     return np.array(rows)
@@ -259,13 +244,13 @@ def _dso_camera(path, image_path) -> PinholeCamera:
         w, h = _first_image_size(image_path)
     if cx < 1 and cy < 1:  # DSO's relative intrinsics (fraction of the image size, pixel corner origin)
         fx, fy, cx, cy = fx * w, fy * h, cx * w - 0.5, cy * h - 0.5
-    return _camera(path, fx, fy, cx, cy, w, h, 1)
+    return checked_camera(path, fx, fy, cx, cy, w, h, 1)
 
 
-def open_dso(path) -> Sequence:
+def open_dso(path, depth: bool = True) -> Sequence:
     """DSO-style folder: ``images/`` (sorted), ``times.txt`` (``id timestamp [exposure_ms]``),
-    ``camera.txt``; optional ``depth/`` with the same file names (16-bit, /5000) and
-    ``groundtruth.txt``."""
+    ``camera.txt``; optional ``depth/`` with the same file names (16-bit, /5000; not read when
+    ``depth`` is false) and ``groundtruth.txt``."""
     root = pathlib.Path(path)
     img_dir = root / "images"
     if not img_dir.is_dir():
@@ -276,12 +261,12 @@ def open_dso(path) -> Sequence:
     stamps, exposures = _dso_times(root / "times.txt", len(files))
     camera = _dso_camera(root / "camera.txt", files[0])
     depth_dir = root / "depth"
-    has_depth = depth_dir.is_dir()
+    has_depth = depth and depth_dir.is_dir()
     gt = read_tum_trajectory(root / "groundtruth.txt") if (root / "groundtruth.txt").is_file() else None
 
     def load(i):
-        img = check_size(files[i], read_image_gray(files[i]), (camera.height, camera.width))
-        depth = read_depth_png(depth_dir / files[i].name, 5000.0, img.shape) if has_depth else None
+        img = read_image_gray(files[i])  # its size is checked by Sequence.__getitem__
+        depth = read_depth_png(depth_dir / files[i].name, 5000.0, (camera.height, camera.width)) if has_depth else None
         exp = None if exposures is None else float(exposures[i])
         return Frame(i, float(stamps[i]), img, camera, depth, exp, str(files[i]))
 
@@ -291,8 +276,7 @@ def open_dso(path) -> Sequence:
 def open_image_folder(path) -> Sequence:
     """A folder of images plus ``camera.yaml`` (``fx fy cx cy width height``, optional ``fps``)."""
     root = pathlib.Path(path)
-    info = read_camera_yaml(root / "camera.yaml")
-    camera = _camera(root / "camera.yaml", *(info[k] for k in ("fx", "fy", "cx", "cy", "width", "height")))
+    camera, info = read_camera(root / "camera.yaml")
     files = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_EXT)
     if not files:
         raise DataError(root, "no images in folder")
@@ -305,8 +289,12 @@ def open_image_folder(path) -> Sequence:
     return Sequence(root.name, root, camera, stamps, load, None, None, None, False, "folder")
 
 
-def open_sequence(path, kind: str = "auto") -> Sequence:
-    """Open a sequence, detecting its layout unless ``kind`` is tum|kitti|euroc|dso|folder."""
+DEPTH_KINDS = ("tum", "dso")  # the layouts that can hold depth maps
+
+
+def open_sequence(path, kind: str = "auto", depth: bool = True) -> Sequence:
+    """Open a sequence, detecting its layout unless ``kind`` is tum|kitti|euroc|dso|folder;
+    ``depth`` false: its depth maps are not read (a monocular run)."""
     root = pathlib.Path(path)
     if not root.exists():
         raise DataError(root, "sequence folder not found")
@@ -316,15 +304,15 @@ def open_sequence(path, kind: str = "auto") -> Sequence:
     if kind != "auto":
         if kind not in openers:
             raise DataError(root, f"unknown dataset kind '{kind}' (choose from {', '.join(openers)})")
-        return openers[kind](root)
+        return openers[kind](root, depth=depth) if kind in DEPTH_KINDS else openers[kind](root)
     if (root / "mav0").is_dir():
         return open_euroc(root)
     if (root / "calib.txt").is_file() and (root / "times.txt").is_file():
         return open_kitti(root)
     if (root / "rgb.txt").is_file():
-        return open_tum(root)
+        return open_tum(root, depth=depth)
     if (root / "images").is_dir() and (root / "times.txt").is_file():
-        return open_dso(root)
+        return open_dso(root, depth=depth)
     if (root / "camera.yaml").is_file():
         return open_image_folder(root)
     raise DataError(root, "unknown sequence layout (expected TUM rgb.txt, KITTI calib.txt+times.txt, EuRoC mav0/, DSO images/+times.txt, or images+camera.yaml)")

@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import MbavoError
+from ..io import CAMERA_KEYS
 from .align import umeyama
 from .associate import associate
 from .poses import pose_matrices, slerp
 
-__all__ = ["statistics", "ape", "rpe", "aligned_positions", "frame_drop_rate", "exposure_path_error", "exposure_path_lengths", "pose_matrices"]
+__all__ = ["statistics", "ape", "rpe", "aligned_positions", "frame_drop_rate", "relative_drift", "exposure_path_error", "exposure_path_lengths", "pose_matrices"]
 
 
 def statistics(errors: np.ndarray) -> dict:
@@ -79,6 +80,27 @@ def rpe(stamps_ref, poses_ref, stamps_est, poses_est, delta: int = 1, align: str
     return out
 
 
+def relative_drift(stamps_ref, poses_ref, stamps_est, poses_est, delta: int = 10, max_diff: float = 0.01) -> dict:
+    """Drift over ``delta`` matched frames after Sim(3) alignment, in % of the true segment length:
+    ``drift_trans_pct`` (mean relative translation error) and ``drift_scale_pct`` (mean |estimated
+    segment length / true - 1|); segments shorter than 1 mm are left out. Also the matched path length."""
+    _, _, T_ref, T_est = _matched(stamps_ref, poses_ref, stamps_est, poses_est, max_diff)
+    T_est = _align(T_ref, T_est, "sim3")[0]
+    p_ref, p_est = T_ref[:, :3, 3], T_est[:, :3, 3]
+    trans, scale = [], []
+    for k in range(len(T_ref) - delta):
+        dr = np.linalg.inv(T_ref[k]) @ T_ref[k + delta]
+        de = np.linalg.inv(T_est[k]) @ T_est[k + delta]
+        length = np.linalg.norm(dr[:3, 3])
+        if length > 1e-3:
+            trans.append(np.linalg.norm((np.linalg.inv(dr) @ de)[:3, 3]) / length)
+            scale.append(abs(np.linalg.norm(de[:3, 3]) / length - 1.0))
+    nan = float("nan")
+    return {"drift_trans_pct": 100 * float(np.mean(trans)) if trans else nan, "drift_scale_pct": 100 * float(np.mean(scale)) if scale else nan,
+            "path_length_m": float(np.linalg.norm(np.diff(p_ref, axis=0), axis=1).sum()), "delta": delta,
+            "estimated_length_m": float(np.linalg.norm(np.diff(p_est, axis=0), axis=1).sum())}
+
+
 def frame_drop_rate(stamps_frames, stamps_est, max_diff: float = 0.01) -> float:
     """Fraction of the sequence's frames that have no estimated pose."""
     if len(stamps_frames) == 0:
@@ -89,7 +111,7 @@ def frame_drop_rate(stamps_frames, stamps_est, max_diff: float = 0.01) -> float:
 
 def _grid_points(camera: dict, depth: float, grid: int) -> np.ndarray:
     """A ``grid`` x ``grid`` pixel grid (10-90 % of the image) back-projected at ``depth`` metres."""
-    fx, fy, cx, cy, w, h = (camera[k] for k in ("fx", "fy", "cx", "cy", "width", "height"))
+    fx, fy, cx, cy, w, h = (camera[k] for k in CAMERA_KEYS)
     u, v = np.meshgrid(np.linspace(0.1 * w, 0.9 * w, grid), np.linspace(0.1 * h, 0.9 * h, grid))
     return np.stack([(u.ravel() - cx) / fx * depth, (v.ravel() - cy) / fy * depth, np.full(u.size, depth)], 1)
 
@@ -97,6 +119,12 @@ def _grid_points(camera: dict, depth: float, grid: int) -> np.ndarray:
 def _project(camera: dict, P: np.ndarray, T_cur_ref: np.ndarray) -> np.ndarray:
     Q = P @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
     return np.stack([camera["fx"] * Q[:, 0] / Q[:, 2] + camera["cx"], camera["fy"] * Q[:, 1] / Q[:, 2] + camera["cy"]], 1)
+
+
+def _mean_shift(camera: dict, P: np.ndarray, T_mid_a: np.ndarray, T_mid_b: np.ndarray) -> float:
+    """Mean pixel distance between the points ``P`` (N, 3) of the mid frame seen from poses a and b (4x4, T_mid_a)."""
+    shift = _project(camera, P, np.linalg.inv(T_mid_b)) - _project(camera, P, np.linalg.inv(T_mid_a))
+    return float(np.mean(np.linalg.norm(shift, axis=1)))
 
 
 def _about_middle(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -110,11 +138,8 @@ def exposure_path_lengths(paths, camera: dict, depth: float = 2.0, grid: int = 8
     """Per frame of ``paths`` (stamps, start (N, 7), end (N, 7)), the mean pixel distance between a
     grid of points at ``depth`` metres (in the mid-exposure frame) seen from the start and end poses."""
     P = _grid_points(camera, depth, grid)
-    out = []
-    for start, end in zip(paths[1], paths[2]):
-        Ts, Te = _about_middle(np.asarray(start, np.float64), np.asarray(end, np.float64))
-        out.append(np.mean(np.linalg.norm(_project(camera, P, np.linalg.inv(Te)) - _project(camera, P, np.linalg.inv(Ts)), axis=1)))
-    return np.asarray(out)
+    return np.asarray([_mean_shift(camera, P, *_about_middle(np.asarray(start, np.float64), np.asarray(end, np.float64)))
+                       for start, end in zip(paths[1], paths[2])])
 
 
 def exposure_path_error(ref, est, camera: dict, depth: float = 2.0, grid: int = 8, max_diff: float = 0.01) -> dict:
@@ -132,7 +157,7 @@ def exposure_path_error(ref, est, camera: dict, depth: float = 2.0, grid: int = 
     if len(i_est) == 0:
         raise MbavoError("no overlapping timestamps between estimated and reference exposure paths")
     P = _grid_points(camera, depth, grid)
-    trans, rot, reproj = [], [], []
+    trans, rot, reproj, ref_len, est_len = [], [], [], [], []
     for ie, ir in zip(i_est, i_ref):
         rs, re_ = _about_middle(np.asarray(ref[1][ir], np.float64), np.asarray(ref[2][ir], np.float64))
         es, ee = _about_middle(np.asarray(est[1][ie], np.float64), np.asarray(est[2][ie], np.float64))
@@ -140,10 +165,10 @@ def exposure_path_error(ref, est, camera: dict, depth: float = 2.0, grid: int = 
             E = np.linalg.inv(Tr) @ Te
             trans.append(np.linalg.norm(E[:3, 3]))
             rot.append(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1))))
-            reproj.append(np.mean(np.linalg.norm(_project(camera, P, np.linalg.inv(Te)) - _project(camera, P, np.linalg.inv(Tr)), axis=1)))
-    pick = lambda paths, idx: (paths[0][idx], np.asarray(paths[1])[idx], np.asarray(paths[2])[idx])
-    ref_len = exposure_path_lengths(pick(ref, i_ref), camera, depth, grid)
-    est_len = exposure_path_lengths(pick(est, i_est), camera, depth, grid)
+            reproj.append(_mean_shift(camera, P, Tr, Te))
+        ref_len.append(_mean_shift(camera, P, rs, re_))  # the paths' lengths, as exposure_path_lengths measures them
+        est_len.append(_mean_shift(camera, P, es, ee))
+    ref_len, est_len = np.asarray(ref_len), np.asarray(est_len)
     long = ref_len >= 0.5
     return {
         "n_matched": int(len(i_est)),

@@ -15,14 +15,14 @@ import numpy as np
 from ..blur import plane_depths_from_keyframe, render_blurry
 from ..geometry import PinholeCamera, Pose
 from ..image import delinearize, from_uint16, linearize, to_uint16
-from ..io import TrajectoryWriter
+from ..io import PlyWriter, TrajectoryWriter
 from .state import ExposureReport, FrameOutcome, Triptych
 
 __all__ = ["RunOutputs", "CSV_COLUMNS", "keyframe_image_path", "read_keyframe_image"]
 
 CSV_COLUMNS = ["index", "timestamp", "status", "rms", "n_finest", "blur_px", "hypothesis", "ms", "keyframe",
                "exposure", "exposure_ms", "exposure_fraction", "sample_s", "sample_weight", "sample_dt_s", "speed_px_s",
-               "jump_px", "note"]
+               "jump_px", "note", "backend_ms"]
 EXPOSURE_HEADER = "timestamp start:tx ty tz qx qy qz qw end:tx ty tz qx qy qz qw (camera-to-world)"
 
 
@@ -55,14 +55,15 @@ def _exposure_cells(e: ExposureReport | None) -> list:
 def _csv_row(o: FrameOutcome) -> list:
     """One frames.csv row; the fit (rms, jump_px) is written exactly, for --resume."""
     if o.result is None and o.status == "keyframe":  # the first frame
-        return [o.index, f"{o.timestamp:.6f}", "keyframe", 0.0, 0, 0.0, "", 0.0, 1, *_exposure_cells(o.exposure), "", ""]
+        return [o.index, f"{o.timestamp:.6f}", "keyframe", 0.0, 0, 0.0, "", 0.0, 1, *_exposure_cells(o.exposure), "", "", ""]
     diag = o.result.diagnostics if o.result is not None else {}
     levels = diag.get("levels") or [{}]
     rms = repr(o.fit.rms) if o.fit is not None else f"{diag.get('rms', float('nan')):.5f}"
     jump = "" if o.fit is None or o.fit.jump_px is None else repr(o.fit.jump_px)
     return [o.index, f"{o.timestamp:.6f}", o.status, rms, levels[-1].get("n", 0),
             f"{diag.get('blur_px', 0.0):.2f}", diag.get("hypothesis", ""), f"{1000 * o.track_seconds:.1f}", int(o.new_keyframe is not None),
-            *_exposure_cells(o.exposure), jump, diag.get("implausible", "")]
+            *_exposure_cells(o.exposure), jump, o.note or diag.get("implausible", ""),
+            f"{1000 * o.backend_seconds:.1f}" if o.backend_seconds else ""]
 
 
 class RunOutputs:
@@ -70,7 +71,8 @@ class RunOutputs:
     otherwise they start afresh (``folder.clear_run`` removes what else an earlier run left)."""
 
     def __init__(self, out, camera: PinholeCamera, response_gamma: float, append: bool = False):
-        self.out, self.camera, self.gamma = pathlib.Path(out), camera, response_gamma
+        self.out, self.camera, self.gamma, self.append = pathlib.Path(out), camera, response_gamma, append
+        self.points = None
         self.out.mkdir(parents=True, exist_ok=True)
         self.triptychs = len(list(self.out.glob("triptych_*.png")))
         self.trajectory = TrajectoryWriter(self.out / "trajectory.txt", append=append)
@@ -87,6 +89,11 @@ class RunOutputs:
         """All records of one frame: images first, then the text files, each flushed."""
         for stamp, image in o.replaced_images:
             self.save_keyframe_image(stamp, image)
+        if o.earlier_keyframe is not None:
+            self.save_keyframe_image(o.earlier_keyframe.stamp, o.earlier_keyframe.image)
+            self.keyframes.write(o.earlier_keyframe.stamp, _vec(o.earlier_keyframe.T_world_kf))
+        if o.points is not None:
+            self.write_points(o.points)
         new = o.new_keyframe
         if new is not None:
             self.save_keyframe_image(new.stamp, new.image)
@@ -99,6 +106,12 @@ class RunOutputs:
             self.keyframes.write(new.stamp, _vec(new.T_world_kf))
         self._csv.writerow(_csv_row(o))
         self._csv_fh.flush()
+
+    def write_points(self, cloud) -> None:
+        """World points (a ``PointCloud``) appended to points.ply."""
+        if self.points is None:
+            self.points = PlyWriter(self.out / "points.ply", append=self.append)
+        self.points.write(cloud.xyz, cloud.intensity)
 
     def save_keyframe_image(self, stamp: float, image: np.ndarray) -> None:
         path = keyframe_image_path(self.out, stamp)
@@ -116,8 +129,9 @@ class RunOutputs:
         self.triptychs += 1
 
     def close(self) -> None:
-        for w in (self.trajectory, self.exposure, self.keyframes):
-            w.close()
+        for w in (self.trajectory, self.exposure, self.keyframes, self.points):
+            if w is not None:
+                w.close()
         self._csv_fh.close()
 
     def __enter__(self):

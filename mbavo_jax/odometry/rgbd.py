@@ -74,6 +74,10 @@ class RGBDPipeline:
 
     # ------------------------------------------------------------------------------ the pieces
 
+    def make_keyframe(self, state: RunState, image, depth, T_world_kf: Pose) -> Keyframe:
+        """The keyframe frames are tracked against, from its (sharp) image and its depth map."""
+        return Keyframe.create(image, depth, self.camera, self.config.tracker)
+
     def exposure_mode(self, frame) -> str:
         """How this frame's exposure time is had: ``known``, ``estimate`` or ``none`` (also for a
         tracker that is not blur-aware: it has no use for one)."""
@@ -112,7 +116,7 @@ class RGBDPipeline:
         """A keyframe at ``T_world_kf`` from a frame whose exposure path is not known yet: used as it
         is, and deblurred once the next frame tracked against it gives the velocity."""
         image = quantize16(frame.image)
-        kf = KeyframeState(Keyframe.create(image, frame.depth, self.camera, self.config.tracker), T_world_kf, frame.timestamp)
+        kf = KeyframeState(self.make_keyframe(state, image, frame.depth, T_world_kf), T_world_kf, frame.timestamp)
         state = state.replace(keyframe=kf, pending=self.pending_of(frame), keyframes=state.keyframes + 1)
         return state, NewKeyframe(frame.timestamp, T_world_kf, image)
 
@@ -194,7 +198,7 @@ class RGBDPipeline:
         if exposure_blur_px(pending.depth, self.camera, path)[0] <= self.config.odometry.deblur_min_blur_px:
             return state, result, ()
         sharp, _ = self.deblurred(pending.image, pending.depth, path)
-        keyframe = Keyframe.create(sharp, pending.depth, self.camera, self.config.tracker)
+        keyframe = self.make_keyframe(state, sharp, pending.depth, kf.T_world_kf)
         state = state.replace(keyframe=dataclasses.replace(kf, keyframe=keyframe))
         init = ExposureTrajectory(mid.compose(path.start), mid.compose(path.end))  # same velocity: T_kf_mid ∘ path
         again = track(keyframe, frame.image, init, self.tracker_config(frame, True), depth=frame.depth)
@@ -251,7 +255,7 @@ class RGBDPipeline:
             if state.triptychs < self.config.odometry.triptychs:
                 triptych = Triptych(frame.image, sharp, frame.depth, traj, n)
                 state = state.replace(triptychs=state.triptychs + 1)
-        kf = KeyframeState(Keyframe.create(sharp, frame.depth, self.camera, self.config.tracker), T_w_mid, frame.timestamp)
+        kf = KeyframeState(self.make_keyframe(state, sharp, frame.depth, T_w_mid), T_w_mid, frame.timestamp)
         state = state.replace(keyframe=kf, keyframes=state.keyframes + 1)
         return state, NewKeyframe(frame.timestamp, T_w_mid, sharp, triptych)
 

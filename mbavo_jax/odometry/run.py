@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..config import RunConfig
+from ..datasets import open_sequence
 from ..errors import DataError, MbavoError
 from ..geometry import Pose
 from ..image import quantize16
@@ -24,10 +25,11 @@ from ..tracking.memory import check_memory
 from .exposure import RawFrame
 from .folder import check_resume, clear_run, reconcile, record_run
 from .outputs import RunOutputs, keyframe_image_path, read_keyframe_image
+from .mono import MonoPipeline
 from .rgbd import RGBDPipeline
 from .state import Fit, FrameOutcome, KeyframeState, Pipeline, RunState
 
-__all__ = ["run_odometry", "resume_state"]
+__all__ = ["run_odometry", "resume_state", "choose_pipeline"]
 
 
 def _pose(v) -> Pose:
@@ -167,20 +169,40 @@ def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False
     with the same settings unless ``resume_anyway``. ``pipeline``: the per-frame step (default: the RGB-D pipeline with
     ``config``; a given pipeline brings its own config)."""
     out = pathlib.Path(out)
-    if not seq.has_depth:
-        raise MbavoError(f"{seq.path}: 'mbavo track' needs depth (an RGB-D sequence); the monocular back-end is not built yet")
     if max_frames is not None and max_frames < 1:
         raise MbavoError(f"--max-frames must be at least 1, got {max_frames}")
-    pipeline = pipeline or RGBDPipeline(seq.camera, config)
+    pipeline = pipeline or choose_pipeline(seq, config)
     config = pipeline.config
+    if isinstance(pipeline, MonoPipeline) and seq.has_depth:  # monocular: the depth maps are not read
+        seq = open_sequence(seq.path, seq.kind, depth=False)
+    if resume and isinstance(pipeline, MonoPipeline):
+        raise MbavoError("--resume is not available for monocular runs yet: run without --resume to start afresh")
     state, start, note = _prepare(out, seq, config, resume, resume_anyway, pipeline, progress)
     first, outcome = state, None
     n_total = len(seq) if max_frames is None else min(len(seq), max_frames)
     with RunOutputs(out, seq.camera, config.tracker.response_gamma, append=start > 0) as outputs, \
             bar(max(n_total - start, 0), "track", progress) as pbar:
+        waiting = 0
         for index in range(start, n_total):
             state, outcome = pipeline.step(state, seq[index], index)
             outputs.write(outcome)
-            pbar.set_postfix(status=outcome.status, keyframes=state.keyframes, dropped=state.dropped, refresh=False)
+            waiting += outcome.status == "initialising"
+            pbar.set_postfix(status=outcome.note or outcome.status, keyframes=state.keyframes, dropped=state.dropped, refresh=False)
             pbar.update()
-    return {**_summary(state, n_total - start, first, outcome), **({"note": note} if note else {})}
+        cloud = pipeline.final_points(state) if hasattr(pipeline, "final_points") else None
+        if cloud is not None:
+            outputs.write_points(cloud)
+    summary = _summary(state, n_total - start, first, outcome)
+    if isinstance(pipeline, MonoPipeline):
+        summary.update(mode="mono", initialising=waiting)
+    return {**summary, **({"note": note} if note else {})}
+
+
+def choose_pipeline(seq, config: RunConfig) -> Pipeline:
+    """The RGB-D pipeline when the sequence has depth and ``odometry.mode`` allows it, else the
+    monocular one."""
+    mode = config.odometry.mode
+    if mode == "rgbd" and not seq.has_depth:
+        raise MbavoError(f"{seq.path}: odometry.mode rgbd needs depth, and this sequence has none (use --mode mono or auto)")
+    mono = mode == "mono" or (mode == "auto" and not seq.has_depth)
+    return (MonoPipeline if mono else RGBDPipeline)(seq.camera, config)

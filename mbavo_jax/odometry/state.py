@@ -64,6 +64,7 @@ class RunState:
     exposure: ExposureEstimate | None = None  # when the exposure time is estimated
     recent: tuple[RawFrame, ...] = ()  # the last raw frames, for the estimate's pairs
     fits: tuple[Fit, ...] = ()  # the last accepted frames' fits, for the plausibility checks
+    backend: object | None = None  # the monocular system's window and initialiser (odometry.mono.MonoState)
 
     def replace(self, **changes) -> "RunState":
         return dataclasses.replace(self, **changes)
@@ -122,6 +123,11 @@ class FrameOutcome:
     exposure: ExposureReport | None = None
     seconds: float = 0.0  # the whole step
     track_seconds: float = 0.0  # tracking (and re-tracking after a pending deblur) only
+    note: str = ""  # why a frame has no pose (monocular: not initialised yet, lost)
+    earlier_keyframe: NewKeyframe | None = None  # a keyframe at an earlier frame made now (the monocular start's reference)
+    points: object | None = None  # world points leaving the window (odometry.mono.PointCloud), for points.ply
+    backend_seconds: float = 0.0  # the monocular back-end: candidates, bundle adjustment, marginalisation
+    ba: object | None = None  # the bundle adjustment's report (mono.ba.BAReport) when one ran
 
     @property
     def tracked(self) -> bool:

@@ -18,14 +18,13 @@ Output folder: ``rgb.txt rgb/ depth.txt depth/ (16-bit, /depth_scale: 5000 unles
 deeper than 13 m) groundtruth.txt`` (mid-exposure, camera-to-world), ``exposure.txt`` (start and end
 pose), ``times.txt`` (``id timestamp exposure_ms``), ``sharp/`` (mid-exposure sharp image),
 ``camera.yaml`` and ``synth.yaml`` (settings and blur stats). Without exposure information
-(``exposure_info=False``, :func:`.metadata.hide_exposure_info`) there is no times.txt nor
-``exposure_ms``, and the exposure paths are in ``groundtruth_exposure.txt``.
+(``exposure_info=False``, as :func:`.metadata.hide_exposure_info` leaves a folder) there is no
+times.txt nor ``exposure_ms``, and the exposure paths are in ``groundtruth_exposure.txt``.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import pathlib
 import time
@@ -37,7 +36,7 @@ import numpy as np
 import yaml
 
 from ..blur import plane_depths_from_keyframe, render_blurry
-from ..config import DEPTH_SIGMA, PRESETS, SynthConfig
+from ..config import AT_LEAST_1, DEPTH_SIGMA, FINITE, NONNEG, PRESETS, SynthConfig
 from ..errors import ConfigError, MbavoError
 from ..geometry import quaternion as quat
 from ..geometry.camera import PinholeCamera
@@ -46,7 +45,7 @@ from ..geometry.trajectory import ExposureTrajectory
 from ..image import delinearize
 from ..io import prepare_out_dir, write_camera_yaml, write_exposure_file, write_tum_trajectory
 from ..progress import bar
-from .metadata import GROUNDTRUTH_EXPOSURE, hide_exposure_info
+from .metadata import GROUNDTRUTH_EXPOSURE
 from .scene import CAMERA_CENTRE, Scene, make_scene, render_exposure, scene_arrays
 
 __all__ = ["SynthConfig", "PRESETS", "generate_sequence", "blur_real_sequence", "camera_path", "mean_blur_length", "sensor_depth",
@@ -177,7 +176,8 @@ def _prepare_out(out) -> pathlib.Path:
     prepare_out_dir(out)
     for sub in ("rgb", "depth", "sharp"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    (out / GROUNDTRUTH_EXPOSURE).unlink(missing_ok=True)  # a previous output's, written without exposure info
+    for name in ("times.txt", "exposure.txt", GROUNDTRUTH_EXPOSURE):  # a previous output's: with or without exposure info
+        (out / name).unlink(missing_ok=True)
     return out
 
 
@@ -221,25 +221,26 @@ def generate_sequence(cfg: SynthConfig, out, progress: bool = True) -> dict:
         blur.append(mean_blur_length(np.asarray(depth), camera, poses, mid))
         pbar.update()
     pbar.close()
-    summary = _write_layout(out, camera, cfg.fps, cfg.exposure_ms, cfg.response_gamma, stamps, stamps, mids, starts, ends, blur,
+    exposure_ms = cfg.exposure_ms if cfg.exposure_info else None
+    summary = _write_layout(out, camera, cfg.fps, exposure_ms, cfg.response_gamma, stamps, stamps, mids, starts, ends, blur,
                             DEPTH_SIGMA[cfg.depth_model], scale)
     summary.update(source=f"synthetic {cfg.scene}", config=dataclasses.asdict(cfg), textures=list(scene.texture_names))
     return _finish(out, summary, t0, cfg.exposure_info)
 
 
 def _finish(out, summary: dict, t0: float, exposure_info: bool) -> dict:
-    """Write synth.yaml (with the run time and ``exposure_info``), then hide the exposure if asked."""
+    """Write synth.yaml (with the run time and ``exposure_info``)."""
     summary.update(exposure_info=exposure_info, seconds=round(time.perf_counter() - t0, 2))
     (out / "synth.yaml").write_text(yaml.safe_dump(summary, sort_keys=False))
-    if not exposure_info:
-        hide_exposure_info(out)
     return summary
 
 
 def _write_layout(out, camera, fps, exposure_ms, gamma, stamps, gt_stamps, mids, starts, ends, blur, depth_sigma,
                   scale=5000.0) -> dict:
     """Write the lists, trajectories and camera; ``gt_stamps`` are the frames with ground truth;
-    depth images hold ``scale`` units per metre."""
+    depth images hold ``scale`` units per metre. ``exposure_ms`` None: no exposure information (no
+    times.txt nor camera.yaml ``exposure_ms``; the exposure paths as ground truth only, in
+    groundtruth_exposure.txt)."""
     names = [f"{t:.6f}.png" for t in stamps]
     with open(out / "rgb.txt", "w") as fh:
         fh.write("# blurry images (mbavo synth)\n# timestamp filename\n")
@@ -247,17 +248,15 @@ def _write_layout(out, camera, fps, exposure_ms, gamma, stamps, gt_stamps, mids,
     with open(out / "depth.txt", "w") as fh:
         fh.write(f"# mid-exposure depth, 16-bit, depth/{scale:g} = metres\n# timestamp filename\n")
         fh.writelines(f"{t:.6f} depth/{n}\n" for t, n in zip(stamps, names))
-    with open(out / "times.txt", "w") as fh:
-        fh.write("# id timestamp exposure_ms\n")
-        fh.writelines(f"{i} {t:.6f} {exposure_ms:.3f}\n" for i, t in enumerate(stamps))
+    if exposure_ms is not None:
+        with open(out / "times.txt", "w") as fh:
+            fh.write("# id timestamp exposure_ms\n")
+            fh.writelines(f"{i} {t:.6f} {exposure_ms:.3f}\n" for i, t in enumerate(stamps))
     write_tum_trajectory(out / "groundtruth.txt", gt_stamps, mids, "timestamp tx ty tz qx qy qz qw (mid-exposure, camera-to-world)")
-    write_exposure_file(out / "exposure.txt", gt_stamps, starts, ends)
-    write_camera_yaml(
-        out / "camera.yaml",
-        fx=float(camera.fx), fy=float(camera.fy), cx=float(camera.cx), cy=float(camera.cy),
-        width=camera.width, height=camera.height, depth_scale=float(scale), exposure_ms=float(exposure_ms),
-        fps=float(fps), response_gamma=float(gamma), depth_sigma=[float(x) for x in depth_sigma],
-    )
+    write_exposure_file(out / ("exposure.txt" if exposure_ms is not None else GROUNDTRUTH_EXPOSURE), gt_stamps, starts, ends)
+    exposure = {} if exposure_ms is None else {"exposure_ms": float(exposure_ms)}
+    write_camera_yaml(out / "camera.yaml", **camera.as_dict(), depth_scale=float(scale), **exposure, fps=float(fps),
+                      response_gamma=float(gamma), depth_sigma=[float(x) for x in depth_sigma])
     blur = np.asarray(blur)
     return {
         "frames": len(stamps),
@@ -306,11 +305,11 @@ def _blur_path(direction: np.ndarray, depth: np.ndarray, cam, blur_px: float) ->
 
 
 def _check_blur_arguments(blur_px: float, n: int, seed: int, noise: float) -> None:
-    """ConfigError naming the first argument of :func:`blur_real_sequence` out of its range."""
-    for name, value, ok, rule in (("blur_px", blur_px, blur_px >= 0, ">= 0"), ("subframes", n, n >= 1, ">= 1"),
-                                  ("seed", seed, seed >= 0, ">= 0"), ("noise", noise, noise >= 0, ">= 0")):
-        if not (math.isfinite(value) and ok):
-            raise ConfigError(f"{name}: must be {rule}, got {value:g}")
+    """ConfigError naming the first argument of :func:`blur_real_sequence` out of its (finite) range."""
+    for name, value, check in (("blur_px", blur_px, NONNEG), ("subframes", n, AT_LEAST_1), ("seed", seed, NONNEG),
+                               ("noise", noise, NONNEG)):
+        if not (FINITE.ok(value) and check.ok(value)):
+            raise ConfigError(f"{name}: must be {check.text}, got {value:g}")
 
 
 def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int = 0, noise: float = 0.0, progress: bool = True,
@@ -321,7 +320,7 @@ def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int =
     T_k_end = exp(+δ/2) (so its mid-exposure pose is the real pose and the ground truth is the
     clip's). δ follows the real motion direction between neighbouring ground-truth poses (a seeded
     random direction where there is none), scaled so the mean blur is ``blur_px`` pixels.
-    ``exposure_info=False``: no exposure time written (see :func:`.metadata.hide_exposure_info`).
+    ``exposure_info=False``: no exposure time written (the exposure paths in groundtruth_exposure.txt).
     """
     from ..evaluation.associate import interpolate_poses
 
@@ -365,7 +364,7 @@ def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int =
         blur.append(mean_blur_length(depth, cam, sub, T_w))
         pbar.update()
     pbar.close()
-    exposure_ms = 1000.0 / 30.0 * 0.5
+    exposure_ms = 1000.0 / 30.0 * 0.5 if exposure_info else None
     summary = _write_layout(out, cam, 30.0, exposure_ms, 1.0, stamps, gt_stamps, mids, starts, ends, blur,
                             seq.meta.get("depth_sigma", DEPTH_SIGMA["sensor"]))  # real RGB-D: Kinect-class unless the source says
     summary.update(source=f"blurred real clip {seq.path}", blur_px_requested=blur_px, n=n, seed=seed)

@@ -15,6 +15,7 @@ import shutil
 import yaml
 
 from ..errors import MbavoError
+from ..io import read_text
 
 __all__ = ["hide_exposure_info", "exposure_hidden_copy", "GROUNDTRUTH_EXPOSURE"]
 
@@ -25,7 +26,7 @@ def _drop_yaml_key(path: pathlib.Path, key: str, record: dict | None = None) -> 
     """Remove ``key`` from the YAML mapping at ``path`` (other keys kept in order), then set ``record``."""
     if not path.is_file():
         return
-    data = yaml.safe_load(path.read_text()) or {}
+    data = yaml.safe_load(read_text(path, path.name)) or {}
     data.pop(key, None)
     data.update(record or {})
     path.write_text(yaml.safe_dump(data, sort_keys=False))

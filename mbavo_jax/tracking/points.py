@@ -12,7 +12,7 @@ import functools
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["PATTERN", "LevelPoints", "select_points", "downsample_depth"]
+__all__ = ["PATTERN", "LevelPoints", "select_points", "given_points", "downsample_depth", "gradient_magnitude"]
 
 # DSO's 8-pixel residual pattern (offsets in pixels, (du, dv)).
 PATTERN = np.array([[0, -2], [-1, -1], [1, -1], [-2, 0], [0, 0], [2, 0], [-1, 1], [0, 2]], dtype=np.float32)
@@ -36,7 +36,7 @@ class LevelPoints:
         return jnp.asarray(self.pixels), jnp.asarray(self.depths), jnp.asarray(self.valid)
 
 
-def _gradient_magnitude(img: np.ndarray) -> np.ndarray:
+def gradient_magnitude(img: np.ndarray) -> np.ndarray:
     gx = np.zeros_like(img)
     gy = np.zeros_like(img)
     gx[:, 1:-1] = 0.5 * (img[:, 2:] - img[:, :-2])
@@ -69,7 +69,7 @@ def select_points(
     img = np.asarray(image, np.float32)
     dep = np.asarray(depth, np.float32)
     h, w = img.shape
-    g = _gradient_magnitude(img)
+    g = gradient_magnitude(img)
     ok = np.isfinite(dep) & (dep > 0) & (g > grad_threshold)
     ok[:border, :] = ok[-border:, :] = False
     ok[:, :border] = ok[:, -border:] = False
@@ -95,3 +95,22 @@ def select_points(
     depths[:k] = dep[rows[keep], cols[keep]]
     valid[:k] = True
     return LevelPoints(pixels, depths, valid)
+
+
+def given_points(image: np.ndarray, pixels: np.ndarray, depths: np.ndarray, max_points: int, border: int = 2) -> LevelPoints:
+    """Points given with their depths (pixels (N, 2) of this level, z-depths (N,)): one per pixel
+    (the nearest; kept at its exact position), those inside ``border`` with a positive depth, the strongest image gradients first,
+    padded to exactly ``max_points`` slots."""
+    h, w = image.shape
+    x = np.rint(pixels).astype(np.int64)
+    ok = (depths > 0) & np.isfinite(depths) & (x[:, 0] >= border) & (x[:, 1] >= border) & (x[:, 0] < w - border) & (x[:, 1] < h - border)
+    x, d, exact = x[ok], depths[ok], np.asarray(pixels, np.float32)[ok]
+    g = gradient_magnitude(np.asarray(image, np.float32))[x[:, 1], x[:, 0]]
+    order = np.argsort(-g, kind="stable")
+    _, first = np.unique((x[order, 1] * w + x[order, 0]), return_index=True)  # one point per pixel: its strongest
+    keep = order[np.sort(first)][:max_points]
+    out = LevelPoints(np.zeros((max_points, 2), np.float32), np.ones(max_points, np.float32), np.zeros(max_points, bool))
+    out.pixels[: len(keep)] = exact[keep]
+    out.depths[: len(keep)] = d[keep]
+    out.valid[: len(keep)] = True
+    return out

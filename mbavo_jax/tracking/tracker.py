@@ -30,7 +30,7 @@ from ..masked import masked_mean
 from .geometric import select_depth_points
 from .level import DepthTerm, LevelInputs, LevelSettings, exposure_motion, solve_level
 from .motion import motion_hypotheses
-from .points import downsample_depth, select_points
+from .points import LevelPoints, downsample_depth, given_points, select_points
 
 __all__ = ["TrackerConfig", "Keyframe", "Status", "TrackResult", "track", "predicted_blur_px", "choose_n"]
 
@@ -77,6 +77,22 @@ class Keyframe:
         dpts = [select_depth_points(depths[l], _depth_stride(config, l), config.depth_edge) for l in range(config.levels)]
         cams = [camera.scaled(l) for l in range(config.levels)]
         return Keyframe(tuple(images), tuple(cams), tuple(pts), dep, tuple(dpts))
+
+    @staticmethod
+    def from_points(image, pixels, depths, camera: PinholeCamera, config: TrackerConfig = TrackerConfig()) -> "Keyframe":
+        """A keyframe whose points are given (level-0 pixels (N, 2), z-depths (N,): a monocular
+        window's points seen from it) instead of selected on a depth map: on each level, one point
+        per level pixel, the strongest gradients first, up to the level's ``points``. No depth term."""
+        img = np.asarray(image, np.float32)
+        if img.shape != (camera.height, camera.width):
+            raise ValueError(f"keyframe image is {img.shape[1]}x{img.shape[0]}, camera is {camera.width}x{camera.height}")
+        config = config.for_image(*img.shape)
+        images = pyramid(linearize(img, config.response_gamma), config.levels)
+        pixels, depths = np.asarray(pixels, np.float32).reshape(-1, 2), np.asarray(depths, np.float32).reshape(-1)
+        pts = [given_points(np.asarray(images[l]), (pixels + 0.5) / 2**l - 0.5, depths, config.points[l]) for l in range(config.levels)]
+        none = LevelPoints(np.zeros((1, 2), np.float32), np.ones(1, np.float32), np.zeros(1, bool))
+        depth = np.full(img.shape, np.nan, np.float32)
+        return Keyframe(tuple(images), tuple(camera.scaled(l) for l in range(config.levels)), tuple(pts), depth, (none,) * config.levels)
 
     def n_points(self, level: int = 0) -> int:
         return self.points[level].count

@@ -1,0 +1,188 @@
+"""The sliding window of the monocular back-end (DSO's): K keyframe slots and P point slots of fixed
+shape, padded and masked, so that one sequence compiles the bundle adjustment once.
+
+Each keyframe slot holds a sharp (deblurred) keyframe image in linear radiance, its pose
+``T_world_kf`` (camera-to-world) and its affine brightness (a, b): a pixel of host h seen in target t
+predicts ``I_t ≈ e^(a_t - a_h) (I_h - b_h) + b_t``. Each point slot holds a host slot, its host pixel
+(level 0) and its inverse depth. ``prior`` is the marginalisation prior on the keyframe variables.
+
+The helpers below (``add_keyframe``, ``add_points``, ...) run on the host, outside ``jit``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from ..errors import ArgumentError
+from ..geometry import quaternion as quat
+from ..geometry.camera import PinholeCamera
+from ..geometry.pose import Pose
+from ..image import bilinear
+
+__all__ = ["Prior", "Window", "VARS", "add_keyframe", "add_points", "world_points", "points_of", "pose_delta",
+           "set_slot_pose"]
+
+VARS = 8  # variables per keyframe: pose increment [Δr (3), Δt (3)] (``Pose.plus``), affine [Δa, Δb]
+
+
+def pose_delta(pose: Pose, pose0: Pose) -> Float[Array, "6"]:
+    """The increment from ``pose0`` to ``pose`` consistent with ``Pose.plus``: [log(q0⁻¹ q), t - t0]."""
+    dq = quat.log(quat.product(quat.inverse(pose0.q), pose.q))
+    return jnp.concatenate([dq, pose.t - pose0.t])
+
+
+def _identity_poses(k: int, dtype) -> Pose:
+    return Pose(jnp.tile(quat.identity(dtype), (k, 1)), jnp.zeros((k, 3), dtype))
+
+
+class Prior(eqx.Module):
+    """The marginalisation prior: ``E(δ) = ½ δᵀ H δ + bᵀ δ`` on the keyframe-variable increments δ
+    (K x 8, flattened slot-major) relative to the linearisation point (``poses``, ``affine``), with the
+    pose part of δ given by :func:`pose_delta`. Slots without prior information have zero rows
+    (and an identity linearisation pose); ``H = 0`` means no prior."""
+
+    H: Float[Array, "M M"]
+    b: Float[Array, "M"]
+    poses: Pose  # (K,) T_world_kf at the linearisation point
+    affine: Float[Array, "K 2"]
+
+    @staticmethod
+    def zeros(k: int, dtype=jnp.float32) -> "Prior":
+        m = VARS * k
+        return Prior(jnp.zeros((m, m), dtype), jnp.zeros(m, dtype), _identity_poses(k, dtype), jnp.zeros((k, 2), dtype))
+
+    def active(self) -> Bool[Array, ""]:
+        """True when the prior holds any information."""
+        return jnp.any(self.H != 0)
+
+    def delta(self, poses: Pose, affine: Float[Array, "K 2"]) -> Float[Array, "M"]:
+        """δ of the keyframe variables (poses, affine) from the linearisation point, flattened (8K,)."""
+        dp = jax.vmap(pose_delta)(poses, self.poses)
+        return jnp.concatenate([dp, affine - self.affine], axis=1).reshape(-1)
+
+
+class Window(eqx.Module):
+    """K keyframe slots and P point slots (fixed shapes; invalid slots are padding).
+
+    ``stamp`` orders the keyframes by insertion (the oldest valid keyframe has the smallest stamp),
+    since freed slots are reused.
+    """
+
+    images: Float[Array, "K H W"]  # keyframe images, linear radiance
+    poses: Pose  # (K,) T_world_kf
+    affine: Float[Array, "K 2"]  # (a, b) per keyframe
+    kf_valid: Bool[Array, "K"]
+    stamp: Int[Array, "K"]
+    host: Int[Array, "P"]  # host slot of each point
+    pixels: Float[Array, "P 2"]  # host pixel (col, row), level 0
+    idepth: Float[Array, "P"]  # inverse z-depth in the host
+    point_valid: Bool[Array, "P"]
+    prior: Prior
+
+    @staticmethod
+    def empty(k: int, p: int, height: int, width: int, dtype=jnp.float32) -> "Window":
+        """A window with K free keyframe slots and P free point slots for height x width images."""
+        return Window(
+            images=jnp.zeros((k, height, width), dtype),
+            poses=_identity_poses(k, dtype),
+            affine=jnp.zeros((k, 2), dtype),
+            kf_valid=jnp.zeros(k, bool),
+            stamp=jnp.zeros(k, jnp.int32),
+            host=jnp.zeros(p, jnp.int32),
+            pixels=jnp.zeros((p, 2), dtype),
+            idepth=jnp.ones(p, dtype),
+            point_valid=jnp.zeros(p, bool),
+            prior=Prior.zeros(k, dtype),
+        )
+
+    @property
+    def slots(self) -> int:
+        return self.images.shape[0]
+
+    @property
+    def capacity(self) -> int:
+        return self.idepth.shape[0]
+
+
+def set_slot_pose(poses: Pose, slot, pose: Pose) -> Pose:
+    """``poses`` with entry ``slot`` replaced by ``pose``."""
+    return Pose(poses.q.at[slot].set(pose.q.astype(poses.q.dtype)), poses.t.at[slot].set(pose.t.astype(poses.t.dtype)))
+
+
+def add_keyframe(window: Window, image, T_world_kf: Pose, affine=(0.0, 0.0)) -> tuple[Window, int]:
+    """``window`` with a new keyframe in its first free slot, and that slot. ``image``: (H, W) linear
+    radiance (a deblurred keyframe). Raises ArgumentError when the window is full or the size differs."""
+    valid = np.asarray(window.kf_valid)
+    free = np.flatnonzero(~valid)
+    if free.size == 0:
+        raise ArgumentError(f"the window is full ({valid.size} keyframes): marginalise one first")
+    image = np.asarray(image, np.float32)
+    if image.shape != tuple(window.images.shape[1:]):
+        raise ArgumentError(f"keyframe image is {image.shape[1]}x{image.shape[0]}, the window holds "
+                            f"{window.images.shape[2]}x{window.images.shape[1]} images")
+    slot = int(free[0])
+    dtype = window.images.dtype
+    stamp = int(np.asarray(window.stamp).max()) + 1 if valid.any() else 0
+    window = dataclasses.replace(
+        window,
+        images=window.images.at[slot].set(jnp.asarray(image, dtype)),
+        poses=set_slot_pose(window.poses, slot, T_world_kf),
+        affine=window.affine.at[slot].set(jnp.asarray(affine, dtype)),
+        kf_valid=window.kf_valid.at[slot].set(True),
+        stamp=window.stamp.at[slot].set(stamp),
+        point_valid=window.point_valid & (window.host != slot),
+    )
+    return window, slot
+
+
+def add_points(window: Window, slot: int, pixels, idepth) -> tuple[Window, int]:
+    """``window`` with points hosted by keyframe ``slot`` in its free point slots (in order), and how
+    many were added (fewer than given when the window runs out of slots). ``pixels``: (N, 2) host
+    pixels (col, row) at level 0; ``idepth``: (N,) inverse depths."""
+    if not bool(np.asarray(window.kf_valid)[slot]):
+        raise ArgumentError(f"keyframe slot {slot} is empty: add the keyframe before its points")
+    pixels = np.asarray(pixels, np.float32).reshape(-1, 2)
+    idepth = np.asarray(idepth, np.float32).reshape(-1)
+    if pixels.shape[0] != idepth.shape[0]:
+        raise ArgumentError(f"{pixels.shape[0]} pixels but {idepth.shape[0]} inverse depths")
+    free = np.flatnonzero(~np.asarray(window.point_valid))[: pixels.shape[0]]
+    n = int(free.size)
+    dtype = window.pixels.dtype
+    window = dataclasses.replace(
+        window,
+        host=window.host.at[free].set(slot),
+        pixels=window.pixels.at[free].set(jnp.asarray(pixels[:n], dtype)),
+        idepth=window.idepth.at[free].set(jnp.asarray(idepth[:n], dtype)),
+        point_valid=window.point_valid.at[free].set(True),
+    )
+    return window, n
+
+
+def _world_point(images, poses: Pose, camera: PinholeCamera, host, pixel, idepth):
+    """One point in world coordinates and its host intensity."""
+    T = Pose(poses.q[host], poses.t[host])
+    xyz = T.apply(camera.backproject(pixel, 1.0 / idepth))
+    value, _ = bilinear(images[host], pixel)
+    return xyz, value
+
+
+def world_points(window: Window, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+    """The valid points with a positive inverse depth: world coordinates (N, 3) and host intensity (N,)."""
+    keep = np.flatnonzero(np.asarray(window.point_valid) & (np.asarray(window.idepth) > 0))
+    if keep.size == 0:
+        return np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
+    fn = jax.vmap(lambda h, x, d: _world_point(window.images, window.poses, camera, h, x, d))
+    xyz, value = fn(window.host[keep], window.pixels[keep], window.idepth[keep])
+    return np.asarray(xyz), np.asarray(value)
+
+
+def points_of(window: Window, slot: int) -> tuple[np.ndarray, np.ndarray]:
+    """The valid points hosted by keyframe ``slot``: pixels (N, 2) and z-depths (N,) (for the tracker)."""
+    keep = np.asarray(window.point_valid) & (np.asarray(window.host) == slot) & (np.asarray(window.idepth) > 0)
+    return np.asarray(window.pixels)[keep], 1.0 / np.asarray(window.idepth)[keep]

@@ -1,0 +1,326 @@
+"""The monocular pipeline's per-frame step: MBA-VO as the paper describes it.
+
+Until initialised, frames go to the two-view initialiser (``mono.init``): corners tracked from a
+reference frame until the parallax is enough; then the reference becomes the first keyframe with
+the triangulated points, and the frame is tracked against it with the blur model. From then on the
+front-end is the RGB-D pipeline's (``rgbd.RGBDPipeline``: blur-aware tracking, deblurred keyframes,
+plausibility checks, estimated exposure) with depth taken from the window's points instead of a
+sensor; each tracked frame refines the candidate points of the window's keyframes along their
+epipolar lines (``mono.candidates``), and each new keyframe runs the back-end: ready candidates join
+the window, the windowed photometric bundle adjustment (``mono.ba``) refines poses, affine
+brightness and inverse depths, and the oldest keyframe is marginalised when the window is full.
+After ``reset_after_drops`` drops in a row the system initialises again from the last good pose.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ..deblur import exposure_blur_px
+from ..geometry import ExposureTrajectory, Pose
+from ..image import linearize, quantize16
+from ..mono.ba import bundle_adjust, marginalize
+from ..mono.candidates import estimates, ready, select_candidates, trace
+from ..mono.depthmap import filled_depth, project_points, sparse_depth
+from ..mono.init import TwoViewTracker
+from ..mono.window import Window, add_keyframe, add_points, world_points
+from ..tracking import Keyframe, Status, exposure_from_velocity, track
+from .rgbd import RGBDPipeline
+from .state import Fit, FrameOutcome, KeyframeState, NewKeyframe, RunState
+
+__all__ = ["MonoPipeline", "MonoState", "PointCloud"]
+
+
+@dataclasses.dataclass(frozen=True)
+class PointCloud:
+    """World points (N, 3) with their intensity (N,) in [0, 1] (display values)."""
+
+    xyz: np.ndarray
+    intensity: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class MonoState:
+    """The monocular system between frames: the initialiser while not initialised, else the
+    window (keyframe slots oldest first, with their stamps) and each slot's candidate points."""
+
+    initialiser: Any = None  # mono.init.TwoViewTracker while initialising
+    reference: tuple[float, np.ndarray] | None = None  # (stamp, raw image) the initialiser started from
+    tries: int = 0  # frames offered to the initialiser since its reference
+    origin: Pose = dataclasses.field(default_factory=Pose.identity)  # the world pose the next initialisation starts at
+    window: Window | None = None
+    slots: tuple[int, ...] = ()  # occupied window slots, oldest first
+    stamps: tuple[float, ...] = ()  # their keyframes' stamps
+    candidates: tuple = ()  # per window slot: mono.candidates.Candidates or None
+    initialisations: int = 0
+    last_stamp: float | None = None  # the previous frame's stamp
+    frame_dt: float = 0.0  # the interval between the last two frames (s)
+
+    @property
+    def initialised(self) -> bool:
+        return self.window is not None
+
+    def replace(self, **changes) -> "MonoState":
+        return dataclasses.replace(self, **changes)
+
+    def restart(self, origin: Pose) -> "MonoState":
+        """Not initialised again, the next start at ``origin`` (the frame clock and counts kept)."""
+        return MonoState(origin=origin, initialisations=self.initialisations, last_stamp=self.last_stamp, frame_dt=self.frame_dt)
+
+
+@dataclasses.dataclass(frozen=True)
+class MonoPipeline(RGBDPipeline):
+    """Blur-aware monocular visual odometry: the blur-aware tracker over a windowed photometric
+    bundle adjustment of deblurred keyframes (depth, when the sequence has it, is not used)."""
+
+    def __post_init__(self):
+        object.__setattr__(self, "config", self.config.replace(tracker=dict(depth_weight=0.0)))
+
+    def step(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
+        t0 = time.perf_counter()
+        frame = dataclasses.replace(frame, depth=None)
+        mono = state.backend or MonoState()
+        if mono.last_stamp is not None and frame.timestamp > mono.last_stamp:
+            mono = mono.replace(frame_dt=frame.timestamp - mono.last_stamp)
+        state = state.replace(backend=mono.replace(last_stamp=frame.timestamp))
+        mono = state.backend
+        if not mono.initialised:
+            state, outcome = self._initialise(state.replace(backend=mono), frame, index)
+        else:
+            state, outcome = self._track_mono(state, frame, index)
+        return state, dataclasses.replace(outcome, seconds=time.perf_counter() - t0)
+
+    # ------------------------------------------------------------------------ initialisation
+
+    def _waiting(self, state: RunState, frame, index: int, note: str) -> tuple[RunState, FrameOutcome]:
+        report = self.exposure_report(state, frame, None, 0.0)
+        return state, FrameOutcome(index, frame.timestamp, "initialising", exposure=report, note=note)
+
+    def _initialise(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
+        """Offer the frame to the two-view initialiser; start the system when it succeeds."""
+        mono, cfg = state.backend, self.config.mono
+        if mono.initialiser is None or mono.tries >= cfg.init_max_frames:
+            again = f" (no initialisation in {mono.tries} frames: starting again)" if mono.initialiser is not None else ""
+            mono = mono.replace(initialiser=TwoViewTracker.start(frame.image, self.camera, cfg),
+                                reference=(frame.timestamp, frame.image), tries=0)
+            return self._waiting(state.replace(backend=mono), frame, index, "initialising: reference frame" + again)
+        initialiser, two_view = mono.initialiser.update(frame.image)
+        mono = mono.replace(initialiser=initialiser, tries=mono.tries + 1)
+        if two_view.restart:  # too few corners left to ever succeed: this frame is the new reference
+            mono = mono.replace(initialiser=TwoViewTracker.start(frame.image, self.camera, cfg),
+                                reference=(frame.timestamp, frame.image), tries=0)
+        state = state.replace(backend=mono)
+        if not two_view.ok:
+            return self._waiting(state, frame, index, f"initialising: {two_view.reason}")
+        return self._start(state, frame, index, two_view)
+
+    def _first_image(self, state: RunState, frame, two_view) -> np.ndarray:
+        """The reference frame as the first keyframe stores it: deblurred along the exposure path that
+        the two-view motion's velocity gives (the estimated or known exposure time), when blurred enough."""
+        cfg, (stamp, raw) = self.config, state.backend.reference
+        sparse = np.full(raw.shape, np.nan, np.float32)
+        u, v = np.rint(two_view.pixels).astype(int).T
+        sparse[v, u] = 1.0 / np.maximum(two_view.idepth, 1e-6)
+        depth = filled_depth(sparse)
+        exposure = self.exposure_of(state, frame, state.backend.frame_dt)  # over the frame interval, not the reference's age
+        path = exposure_from_velocity(two_view.T_ref_cur, max(frame.timestamp - stamp, 1e-6), exposure)
+        if not (cfg.tracker.blur_aware and cfg.odometry.deblur_first_keyframe and np.isfinite(depth).all()
+                and exposure_blur_px(depth, self.camera, path)[0] > cfg.odometry.deblur_min_blur_px):
+            return quantize16(raw)
+        return self.deblurred(raw, depth, path)[0]
+
+    def _start(self, state: RunState, frame, index: int, two_view) -> tuple[RunState, FrameOutcome]:
+        """The reference frame (deblurred) as the first keyframe of a new window with the triangulated
+        points and the candidates that converge in this frame, and this frame tracked against it
+        (blur-aware) from the two-view pose."""
+        mono, cfg = state.backend, self.config
+        stamp, image = mono.reference[0], self._first_image(state, frame, two_view)
+        window = Window.empty(cfg.mono.window, cfg.mono.points, self.camera.height, self.camera.width)
+        window, slot = add_keyframe(window, linearize(image, cfg.tracker.response_gamma), mono.origin)
+        window, _ = add_points(window, slot, two_view.pixels, two_view.idepth)
+        candidates = [None] * cfg.mono.window
+        candidates[slot] = select_candidates(linearize(image, cfg.tracker.response_gamma), cfg.mono.candidates, cfg.mono)
+        mono = mono.replace(initialiser=None, reference=None, tries=0, window=window, slots=(slot,), stamps=(stamp,),
+                            candidates=tuple(candidates), initialisations=mono.initialisations + 1)
+        mono = self._activate(self.traced(mono, frame.image, mono.origin.compose(two_view.T_ref_cur)))
+        state = state.replace(backend=mono)
+        kf = KeyframeState(self.make_keyframe(state, image, None, mono.origin), mono.origin, stamp)
+        state = state.replace(keyframe=kf, mids=((stamp, mono.origin),), keyframes=state.keyframes + 1, fits=(), pending=None,
+                              consecutive_drops=0)
+        new = NewKeyframe(stamp, mono.origin, image)
+        guess = ExposureTrajectory(two_view.T_ref_cur, two_view.T_ref_cur)
+        result = track(kf.keyframe, frame.image, guess, self.tracker_config(frame, False))
+        if not result.status.ok:
+            mono = mono.restart(mono.origin)
+            state = state.replace(backend=mono, keyframe=None, mids=state.mids[:0], pending=None)
+            return self._waiting(state, frame, index, f"initialising: the two-view start did not track ({result.status.name.lower()})")
+        frame = dataclasses.replace(frame, depth=self.frame_depth(state, result.trajectory.middle()))
+        stats = self.frame_stats(state, result, None)
+        state, outcome = self._tracked(state, frame, index, result, False, Fit(float(result.diagnostics["rms"]), None), stats)
+        state = self._trace(state, frame, outcome)
+        if outcome.new_keyframe is not None:
+            state, outcome = self._backend(state, frame, outcome)
+        note = f"initialised: parallax {two_view.parallax_deg:.1f} deg, {len(two_view.idepth)} points"
+        return state, dataclasses.replace(outcome, earlier_keyframe=new, note=note)
+
+    # ------------------------------------------------------------------------------ tracking
+
+    def make_keyframe(self, state: RunState, image, depth, T_world_kf: Pose) -> Keyframe:
+        """The tracker's keyframe: its image with the window's points seen from ``T_world_kf``."""
+        x, z, ok = (np.asarray(v) for v in project_points(self.camera, T_world_kf.inverse(), jnp.asarray(self.window_xyz(state.backend))))
+        return Keyframe.from_points(image, x[ok], z[ok], self.camera, self.config.tracker)
+
+    def window_xyz(self, mono: MonoState) -> np.ndarray:
+        """The window's active points in the world frame (N, 3)."""
+        xyz, _ = world_points(mono.window, self.camera)
+        return np.asarray(xyz, np.float32)
+
+    def window_depth(self, mono: MonoState, T_world_cam: Pose) -> np.ndarray:
+        """Sparse depth of the window's points seen from ``T_world_cam`` (NaN where none)."""
+        return sparse_depth(self.camera, T_world_cam, self.window_xyz(mono))
+
+    def frame_depth(self, state: RunState, T_kf_mid: Pose) -> np.ndarray:
+        """A filled depth map of the frame at ``T_kf_mid`` (in the current keyframe) from the window's points."""
+        return filled_depth(self.window_depth(state.backend, state.keyframe.T_world_kf.compose(T_kf_mid)))
+
+    def _track_mono(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
+        guess, _ = self.predict(state, frame)
+        frame = dataclasses.replace(frame, depth=self.frame_depth(state, guess.middle()))
+        state, outcome = self._track(state, frame, index)
+        if outcome.replaced_images:  # the first keyframe deblurred: the window sees it too
+            state = state.replace(backend=self._replace_images(state.backend, outcome.replaced_images))
+        if outcome.tracked:
+            state = self._trace(state, frame, outcome)
+        if outcome.new_keyframe is not None and state.backend.initialised:
+            state, outcome = self._backend(state, frame, outcome)
+        return state, outcome
+
+    def _dropped(self, state: RunState, frame, index: int, result) -> tuple[RunState, FrameOutcome]:
+        """A drop as in the RGB-D pipeline, but after ``reset_after_drops`` drops in a row the system
+        initialises again, from the last good pose (the scale of the new start is its own)."""
+        odo = self.config.odometry
+        odd = result is not None and result.status == Status.IMPLAUSIBLE
+        state = state.replace(dropped=state.dropped + 1, consecutive_drops=state.consecutive_drops + 1,
+                              mids=state.mids if odd else state.mids[-1:])
+        note = ""
+        if state.consecutive_drops >= odo.reset_after_drops:
+            origin = state.mids[-1][1]
+            state = state.replace(backend=state.backend.restart(origin),
+                                  keyframe=None, pending=None, consecutive_drops=0, fits=())
+            note = f"lost after {odo.reset_after_drops} drops: initialising again"
+        status = (result.status if result is not None else Status.TOO_FEW_POINTS).name.lower()
+        report = self.exposure_report(state, frame, None, 0.0)
+        return state, FrameOutcome(index, frame.timestamp, status, result=result, exposure=report, note=note)
+
+    # ------------------------------------------------------------------------------- back-end
+
+    def _trace(self, state: RunState, frame, outcome: FrameOutcome) -> RunState:
+        """Each window keyframe's candidates searched along their epipolar lines in this frame."""
+        affine = outcome.result.diagnostics.get("affine", [0.0, 0.0]) if outcome.result is not None else [0.0, 0.0]
+        return state.replace(backend=self.traced(state.backend, frame.image, outcome.T_world_mid, affine))
+
+    def traced(self, mono: MonoState, image, T_world_frame: Pose, affine=(0.0, 0.0)) -> MonoState:
+        """``mono`` with each window keyframe's candidates searched along their epipolar lines in
+        ``image`` (display values) seen from ``T_world_frame``."""
+        image = linearize(image, self.config.tracker.response_gamma)
+        T_frame_world = T_world_frame.inverse()
+        cands = list(mono.candidates)
+        for slot in mono.slots:
+            if cands[slot] is None:
+                continue
+            T_frame_host = T_frame_world.compose(_slot_pose(mono.window, slot))
+            cands[slot] = trace(cands[slot], mono.window.images[slot], image, self.camera, T_frame_host,
+                                np.asarray(affine, np.float32), self.config.mono)
+        return mono.replace(candidates=tuple(cands))
+
+    def _replace_images(self, mono: MonoState, images) -> MonoState:
+        """The window's keyframe images replaced by (stamp, image) pairs (deblurred later)."""
+        window = mono.window
+        for stamp, image in images:
+            slot = next((sl for sl, t in zip(mono.slots, mono.stamps) if abs(t - stamp) < 1e-9), None)
+            if slot is not None:
+                linear = jnp.asarray(linearize(image, self.config.tracker.response_gamma), window.images.dtype)
+                window = eqx.tree_at(lambda w: w.images, window, window.images.at[slot].set(linear))
+        return mono.replace(window=window)
+
+    def _activate(self, mono: MonoState) -> MonoState:
+        """Ready candidates of every window keyframe join the window's points (as many as fit)."""
+        window, cands = mono.window, list(mono.candidates)
+        for slot in reversed(mono.slots):  # the newest keyframes' points first
+            c = cands[slot]
+            if c is None:
+                continue
+            mask = np.asarray(ready(c, self.config.mono))
+            if not mask.any():
+                continue
+            pixels, idepth = (np.asarray(v) for v in estimates(c))
+            window, added = add_points(window, slot, pixels[mask], idepth[mask])
+            cands[slot] = _consume(c, np.flatnonzero(mask)[:added])
+        return mono.replace(window=window, candidates=tuple(cands))
+
+    def _backend(self, state: RunState, frame, outcome: FrameOutcome) -> tuple[RunState, FrameOutcome]:
+        """A new keyframe joins the window (the oldest marginalised first when it is full), ready
+        candidates become points, the window is bundle-adjusted, and the tracker's keyframe and the
+        recent poses follow the adjusted poses."""
+        t0 = time.perf_counter()
+        mono, cfg, new = state.backend, self.config, outcome.new_keyframe
+        cloud = None
+        if len(mono.slots) >= cfg.mono.window:
+            mono, cloud = self._marginalize_oldest(mono)
+        image = linearize(new.image, cfg.tracker.response_gamma)
+        window, slot = add_keyframe(mono.window, image, new.T_world_kf)
+        cands = list(mono.candidates)
+        cands[slot] = select_candidates(image, cfg.mono.candidates, cfg.mono)
+        mono = self._activate(mono.replace(window=window, slots=(*mono.slots, slot), stamps=(*mono.stamps, new.stamp),
+                                           candidates=tuple(cands)))
+        window, report = bundle_adjust(mono.window, self.camera, cfg.mono)
+        mono = mono.replace(window=window)
+        T_new = _slot_pose(window, slot)
+        correction = T_new.compose(new.T_world_kf.inverse())
+        state = state.replace(backend=mono)
+        kf = KeyframeState(self.make_keyframe(state, new.image, None, T_new), T_new, new.stamp)
+        mids = tuple((t, correction.compose(T)) for t, T in state.mids)
+        state = state.replace(keyframe=kf, mids=mids)
+        outcome = dataclasses.replace(outcome, points=cloud, backend_seconds=time.perf_counter() - t0, ba=report)
+        return state, outcome
+
+    def _marginalize_oldest(self, mono: MonoState) -> tuple[MonoState, PointCloud]:
+        """The oldest keyframe leaves the window: its points are returned (for points.ply) and its
+        information stays as a prior on the others."""
+        slot = mono.slots[0]
+        cloud = self.slot_points(mono, slot)
+        window = marginalize(mono.window, slot, self.camera, self.config.mono)
+        cands = list(mono.candidates)
+        cands[slot] = None
+        return mono.replace(window=window, slots=mono.slots[1:], stamps=mono.stamps[1:], candidates=tuple(cands)), cloud
+
+    def slot_points(self, mono: MonoState, slot: int | None = None) -> PointCloud:
+        """The world points hosted by ``slot`` (None: every point of the window) and their intensity."""
+        window = mono.window
+        if slot is not None:
+            window = eqx.tree_at(lambda w: w.point_valid, window, window.point_valid & (window.host == slot))
+        xyz, intensity = world_points(window, self.camera)
+        gamma = self.config.tracker.response_gamma
+        return PointCloud(np.asarray(xyz, np.float32), np.clip(np.asarray(intensity, np.float32), 0, None) ** (1.0 / gamma))
+
+    def final_points(self, state: RunState) -> PointCloud | None:
+        """The points still in the window at the end of a run (points.ply gets them last)."""
+        mono = state.backend
+        return self.slot_points(mono) if mono is not None and mono.initialised else None
+
+
+def _slot_pose(window: Window, slot: int) -> Pose:
+    return Pose(window.poses.q[slot], window.poses.t[slot])
+
+
+def _consume(c, used: np.ndarray):
+    """Candidates ``used`` (indices) marked invalid: they are points of the window now."""
+    valid = np.asarray(c.valid).copy()
+    valid[used] = False
+    return eqx.tree_at(lambda x: x.valid, c, jnp.asarray(valid))

@@ -1,0 +1,136 @@
+"""The monocular system end to end: ``mbavo track --mode mono`` and a sequence without depth, its
+outputs (points.ply among them), initialisation notes, a textureless start and a black stretch
+(drops, then a new initialisation), and the Python API."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from mbavo_jax.bench_mono import trajectory_scores
+from mbavo_jax.config import EvalConfig, RunConfig
+from mbavo_jax.datasets import open_sequence
+from mbavo_jax.io import read_ply, read_tum_trajectory
+from mbavo_jax.odometry import run_odometry
+from mbavo_jax.odometry.mono import MonoPipeline
+from mbavo_jax.synthetic import PRESETS, SynthConfig, generate_sequence
+
+FRAMES = 36
+
+
+def rows_of(out) -> list[dict]:
+    with open(out / "frames.csv", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+@pytest.fixture(scope="module")
+def seq_dir(tmp_path_factory):
+    """A blurred 320x240 sequence (strong preset) without exposure metadata, with depth maps."""
+    out = tmp_path_factory.mktemp("mono") / "strong"
+    cfg = SynthConfig(**{**PRESETS["strong"], "frames": FRAMES, "width": 320, "height": 240, "subframes": 32, "seed": 1,
+                         "real_textures": False, "exposure_info": False})
+    generate_sequence(cfg, out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def mono_run(seq_dir, tmp_path_factory):
+    """``mbavo track --mode mono`` on the RGB-D sequence, with depth reading made to fail."""
+    from tests.conftest import run_cli
+
+    out = tmp_path_factory.mktemp("mono_run") / "run"
+    mp = pytest.MonkeyPatch()
+    mp.setattr("mbavo_jax.datasets.loaders.read_depth_png", lambda *a, **k: (_ for _ in ()).throw(AssertionError("depth read")))
+    try:
+        assert run_cli("track", str(seq_dir), "--out", str(out), "--mode", "mono", "-q", "--format", "json") == 0
+    finally:
+        mp.undo()
+    return out
+
+
+@pytest.mark.slow
+def test_mono_run_tracks_every_frame_after_initialisation(seq_dir, mono_run):
+    rows = rows_of(mono_run)
+    assert len(rows) == FRAMES
+    waiting = [r for r in rows if r["status"] == "initialising"]
+    assert rows[0]["status"] == "initialising" and rows[0]["note"].startswith("initialising: reference frame")
+    assert all(r["note"].startswith("initialising") for r in waiting)
+    started = next(i for i, r in enumerate(rows) if r["status"] != "initialising")
+    assert rows[started]["note"].startswith("initialised: parallax") and started <= FRAMES // 2
+    assert all(r["status"] in ("converged", "max_steps") for r in rows[started:]), [r["status"] for r in rows]
+    t, _ = read_tum_trajectory(mono_run / "trajectory.txt")
+    assert len(t) == FRAMES - started
+    kf, _ = read_tum_trajectory(mono_run / "keyframes.txt")
+    assert len(kf) >= 2 and abs(kf[0] - float(rows[0]["timestamp"])) < 1e-6  # the reference is the first keyframe
+    assert sum(1 for r in rows if r["backend_ms"]) >= 1  # bundle adjustments ran
+
+
+@pytest.mark.slow
+def test_mono_run_is_accurate_up_to_scale(seq_dir, mono_run):
+    seq = open_sequence(seq_dir)
+    scores = trajectory_scores(seq, mono_run, EvalConfig())
+    assert scores["ate_pct"] < 5.0, scores
+    assert scores["drift_scale_pct"] < 20.0, scores
+
+
+@pytest.mark.slow
+def test_points_ply_holds_the_window_points(mono_run):
+    xyz, intensity = read_ply(mono_run / "points.ply")
+    assert len(xyz) >= 100 and np.isfinite(xyz).all()
+    assert (intensity >= 0).all() and (intensity <= 1).all() and intensity.std() > 0.01
+    header = (mono_run / "points.ply").read_text().split("end_header")[0]
+    assert f"element vertex {len(xyz):012d}" in header
+    _, poses = read_tum_trajectory(mono_run / "trajectory.txt")
+    centre = poses[:, :3].mean(0)
+    assert np.median(np.linalg.norm(xyz - centre, axis=1)) < 50.0  # the points sit in the scene, not at infinity
+
+
+@pytest.mark.slow
+def test_sequence_without_depth_runs_monocular(seq_dir, tmp_path, mbavo):
+    """Auto mode: no depth.txt -> the monocular system; a textureless start is waited out with a note;
+    a black stretch is dropped and the system initialises again. Every frame has a row."""
+    data = tmp_path / "nodepth"
+    shutil.copytree(seq_dir, data, ignore=shutil.ignore_patterns("depth", "depth.txt", "sharp"))
+    names = [line.split()[1] for line in (data / "rgb.txt").read_text().splitlines() if not line.startswith("#")]
+    for name in names[:3] + names[20:24]:  # black frames: at the start and a stretch in the middle
+        cv2.imwrite(str(data / name), np.zeros((240, 320), np.uint8))
+    # a lower parallax threshold makes both starts quick enough for this short sequence
+    r = mbavo("track", data, "--out", tmp_path / "run", "-q", "--format", "json", "--set", "mono.init_min_parallax_deg=0.3")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["mode"] == "mono" and summary["frames"] == FRAMES
+    rows = rows_of(tmp_path / "run")
+    assert len(rows) == FRAMES
+    assert "too little texture" in rows[1]["note"] or "too little texture" in rows[2]["note"]
+    assert any("initialising again" in r["note"] for r in rows[20:25]), [r["note"] for r in rows[20:25]]
+    assert all(r["status"] not in ("converged", "max_steps") for r in rows[20:24])
+    assert any(r["note"].startswith("initialised") for r in rows[24:]), [r["note"] for r in rows[24:]]
+    assert sum(r["note"].startswith("initialised") for r in rows) == 2
+
+
+def test_mono_refuses_resume(seq_dir, tmp_path, mbavo):
+    r = mbavo("track", seq_dir, "--out", tmp_path / "run", "--mode", "mono", "--resume")
+    assert r.returncode == 1 and "--resume is not available for monocular runs" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_rgbd_mode_needs_depth(seq_dir, tmp_path, mbavo):
+    data = tmp_path / "nodepth"
+    shutil.copytree(seq_dir, data, ignore=shutil.ignore_patterns("depth", "depth.txt", "sharp"))
+    r = mbavo("track", data, "--out", tmp_path / "run", "--mode", "rgbd")
+    assert r.returncode == 1 and "needs depth" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_python_api_runs_the_monocular_pipeline(seq_dir, tmp_path):
+    """``run_odometry`` with a ``MonoPipeline`` on a Sequence (depth present but unused)."""
+    seq = open_sequence(seq_dir)
+    pipeline = MonoPipeline(seq.camera, RunConfig().replace(tracker=dict(n=8)))
+    summary = run_odometry(seq, tmp_path / "run", pipeline=pipeline, progress=False, max_frames=14)
+    assert summary["mode"] == "mono" and summary["frames"] == 14 and summary["tracked"] >= 3
+    assert pipeline.config.tracker.depth_weight == 0.0

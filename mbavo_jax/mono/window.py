@@ -172,14 +172,19 @@ def _world_point(images, poses: Pose, camera: PinholeCamera, host, pixel, idepth
     return xyz, value
 
 
+@jax.jit
+def _all_world_points(window: Window, camera: PinholeCamera):
+    """Every point slot in world coordinates and its host intensity (one program per window shape)."""
+    return jax.vmap(lambda h, x, d: _world_point(window.images, window.poses, camera, h, x, d))(window.host, window.pixels, window.idepth)
+
+
 def world_points(window: Window, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
     """The valid points with a positive inverse depth: world coordinates (N, 3) and host intensity (N,)."""
     keep = np.flatnonzero(np.asarray(window.point_valid) & (np.asarray(window.idepth) > 0))
     if keep.size == 0:
         return np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
-    fn = jax.vmap(lambda h, x, d: _world_point(window.images, window.poses, camera, h, x, d))
-    xyz, value = fn(window.host[keep], window.pixels[keep], window.idepth[keep])
-    return np.asarray(xyz), np.asarray(value)
+    xyz, value = jax.device_get(_all_world_points(window, camera))
+    return np.asarray(xyz)[keep], np.asarray(value)[keep]
 
 
 def points_of(window: Window, slot: int) -> tuple[np.ndarray, np.ndarray]:

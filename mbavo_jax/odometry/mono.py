@@ -24,7 +24,7 @@ import numpy as np
 
 from ..deblur import exposure_blur_px
 from ..geometry import ExposureTrajectory, Pose
-from ..image import linearize, quantize16
+from ..image import delinearize, linearize, quantize16
 from ..mono.ba import bundle_adjust, marginalize
 from ..mono.candidates import estimates, ready, select_candidates, trace
 from ..mono.depthmap import filled_depth, project_points, sparse_depth
@@ -306,8 +306,8 @@ class MonoPipeline(RGBDPipeline):
         if slot is not None:
             window = eqx.tree_at(lambda w: w.point_valid, window, window.point_valid & (window.host == slot))
         xyz, intensity = world_points(window, self.camera)
-        gamma = self.config.tracker.response_gamma
-        return PointCloud(np.asarray(xyz, np.float32), np.clip(np.asarray(intensity, np.float32), 0, None) ** (1.0 / gamma))
+        display = delinearize(np.clip(np.asarray(intensity, np.float32), 0.0, None), self.config.tracker.response_gamma)
+        return PointCloud(np.asarray(xyz, np.float32), np.asarray(display, np.float32))
 
     def final_points(self, state: RunState) -> PointCloud | None:
         """The points still in the window at the end of a run (points.ply gets them last)."""

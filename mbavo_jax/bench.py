@@ -6,6 +6,9 @@ blurry frame k+1, from a constant-velocity guess of the true mid-exposure poses 
 Accuracy: median reprojection error over the keyframe's points of the estimated start and end poses
 ("endpoint") and of the mid-exposure pose ("mid"); single-pose methods use their pose for both.
 Times: median wall time of the tracking call, first pair (compilation) excluded.
+
+Odometry: a sweep (``mbavo_jax.sweep``) of the sequences x the methods of ``ODOMETRY_METHODS``
+(ours: overrides in ``OURS_ODOMETRY``; peers: ``run_peer``), its rows gathered per sequence.
 """
 
 from __future__ import annotations
@@ -20,10 +23,9 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-import yaml
 
 from . import tracking
-from .config import PRESETS, BenchConfig, EvalConfig, OdometryConfig, RunConfig, SynthConfig, TrackerConfig, calibration_of
+from .config import PRESETS, BenchConfig, EvalConfig, OdometryConfig, RunConfig, SweepConfig, SynthConfig, TrackerConfig, calibration_of
 from .datasets import open_sequence
 from .errors import DataError, MbavoError
 from .evaluation import evaluate_run
@@ -34,7 +36,8 @@ from .progress import bar
 from .tracking import Keyframe, constant_velocity_guess, track
 
 __all__ = ["run_tracking_benchmark", "format_tracking_table", "run_odometry_benchmark", "format_odometry_table",
-           "main_tracking", "main_odometry", "Open3DPeer", "OpenCVPeer", "ODOMETRY_METHODS"]
+           "main_tracking", "main_odometry", "Open3DPeer", "OpenCVPeer", "ODOMETRY_METHODS", "OURS_ODOMETRY",
+           "odometry_sweep", "nested_results", "run_ours", "run_peer", "make_peer", "deblur_quality", "tum_blurred"]
 
 # ---------------------------------------------------------------------------------------- peers
 
@@ -355,7 +358,7 @@ def _peer_odometry(seq, out: pathlib.Path, peer) -> dict:
     return {"frames": len(seq), "dropped": drops, "median_ms": float(np.median(ms)) if ms else 0.0}
 
 
-def _deblur_quality(seq, run: pathlib.Path) -> dict:
+def deblur_quality(seq, run: pathlib.Path) -> dict:
     """Mean PSNR/SSIM of this run's keyframe images (deblurred where blurred) and of the blurry
     input, both against the generated sharp frames."""
     from .deblur import psnr, ssim
@@ -384,30 +387,30 @@ def _ate(seq, run: pathlib.Path, config: EvalConfig) -> float:
     return evaluate_run(run, seq.groundtruth, config=config).get("ate_rmse_m", float("nan"))
 
 
-def _our_configs(base: TrackerConfig, depth_weight: float, methods) -> dict:
-    configs = {
-        "ours_n64": base,
-        "ours_n1": dataclasses.replace(base, blur_aware=False),
-        "ours_adaptive": dataclasses.replace(base, n_mode="adaptive"),
-        "ours_n64_depth": dataclasses.replace(base, depth_weight=depth_weight),
-        "ours_n1_depth": dataclasses.replace(base, blur_aware=False, depth_weight=depth_weight),
-    }
-    return {m: c for m, c in configs.items() if m in methods}
+# our methods of the odometry benchmark: overrides of the defaults (``{depth_weight}``: BenchConfig.depth_weight)
+OURS_ODOMETRY = {
+    "ours_n64": (),
+    "ours_n1": ("tracker.blur_aware=false",),
+    "ours_adaptive": ("tracker.n_mode=adaptive",),
+    "ours_n64_depth": ("tracker.depth_weight={depth_weight}",),
+    "ours_n1_depth": ("tracker.blur_aware=false", "tracker.depth_weight={depth_weight}"),
+}
 
 
-def _run_ours(seq, run: pathlib.Path, cfg: TrackerConfig, progress: bool) -> dict:
-    """One of our methods over a sequence: ATE, frame drops, keyframes, whole-loop seconds per frame."""
+def run_ours(seq, run: pathlib.Path, config: RunConfig, progress: bool = False) -> dict:
+    """Our loop over a sequence: ATE, frame drops, keyframes, whole-loop seconds per frame, the
+    exposure quality and (generated sequences) the deblurred keyframes' PSNR/SSIM."""
     from .odometry import run_odometry
 
-    config = RunConfig(tracker=cfg)
     t0 = time.perf_counter()
     summ = run_odometry(seq, run, config, progress=progress)
     el = time.perf_counter() - t0
     with open(run / "frames.csv") as fh:
         track_ms = [float(r["ms"]) for r in csv.DictReader(fh) if r["status"] != "keyframe"]
+    deblur = {("deblur_keyframes" if k == "keyframes" else k): v for k, v in deblur_quality(seq, run).items()}
     return {"ate_rmse_m": _ate(seq, run, config.evaluation), "frame_drop_rate": summ["frame_drop_rate"], "keyframes": summ["keyframes"],
             "seconds_per_frame": el / max(summ["frames"], 1), "median_track_ms": float(np.median(track_ms)) if track_ms else 0.0,
-            **_exposure_quality(seq, run, summ)}
+            **_exposure_quality(seq, run, summ), **deblur}
 
 
 def _exposure_quality(seq, run: pathlib.Path, summ: dict) -> dict:
@@ -425,51 +428,79 @@ def _exposure_quality(seq, run: pathlib.Path, summ: dict) -> dict:
     return out
 
 
-def _run_peers(seq, out: pathlib.Path, methods, progress: bool, label: str, depth_max: float) -> dict:
-    """The peers among ``methods`` over a sequence: ATE, frame drops, median seconds per call."""
-    cam = seq.camera
-    makers = {"open3d": lambda: Open3DPeer(cam, "hybrid", depth_max), "open3d_color": lambda: Open3DPeer(cam, "color", depth_max),
-              "opencv": lambda: OpenCVPeer(cam, depth_max)}
-    row = {}
-    for method in (m for m in makers if m in methods):
-        try:
-            peer = makers[method]()
-        except ImportError as exc:
-            row[method] = {"error": f"unavailable: {exc}"}
-            continue
-        if progress:
-            print(f"{label}: {method}", file=sys.stderr)
-        p_sum = _peer_odometry(seq, out / method, peer)
-        row[method] = {"ate_rmse_m": _ate(seq, out / method, RunConfig().evaluation), "frame_drop_rate": p_sum["dropped"] / p_sum["frames"],
-                       "seconds_per_frame": p_sum["median_ms"] / 1000}
-    return row
+def make_peer(method: str, camera, depth_max: float):
+    """The peer adapter of ``method`` (open3d, open3d_color, opencv); MbavoError when its library is missing."""
+    try:
+        if method == "opencv":
+            return OpenCVPeer(camera, depth_max)
+        return Open3DPeer(camera, {"open3d": "hybrid", "open3d_color": "color"}[method], depth_max)
+    except (ImportError, OSError) as exc:
+        raise MbavoError(f"{method} unavailable: {exc}") from None
+
+
+def run_peer(seq, run: pathlib.Path, method: str, evaluation: EvalConfig, depth_max: float) -> dict:
+    """A peer's chained frame-to-frame odometry over a sequence: ATE, frame drops, median seconds per call."""
+    p_sum = _peer_odometry(seq, run, make_peer(method, seq.camera, depth_max))
+    return {"ate_rmse_m": _ate(seq, run, evaluation), "frame_drop_rate": p_sum["dropped"] / p_sum["frames"],
+            "seconds_per_frame": p_sum["median_ms"] / 1000}
+
+
+def odometry_sweep(sequences: dict, tracker_overrides: dict | None = None, depth_weight: float = 0.03,
+                   methods=ODOMETRY_METHODS, peer_depth_max: float = BenchConfig().peer_depth_max):
+    """The odometry benchmark as a sweep: ``sequences`` (name -> folder) x ``methods``; our methods
+    with ``tracker_overrides`` (TrackerConfig fields, e.g. for small images) under their own."""
+    from .sweep import SequenceSpec, SweepSpec, as_overrides
+
+    check_methods(methods)
+    base = as_overrides(tracker_overrides or {}, "tracker")
+    ours = {m: (*base, *(o.format(depth_weight=repr(float(depth_weight))) for o in OURS_ODOMETRY[m])) for m in OURS_ODOMETRY if m in methods}
+    return SweepSpec(sequences=tuple(SequenceSpec(name, path=str(path)) for name, path in sequences.items()), configurations=ours,
+                     peers=tuple(m for m in ODOMETRY_METHODS if m in methods and m not in OURS_ODOMETRY), base=base,
+                     peer_depth_max=peer_depth_max)
+
+
+ROW_KEYS = ("sequence", "method", "status", "seconds", "overrides", "frames", "mean_blur_px", "depth_sigma")
+DEBLUR_KEYS = {"deblur_keyframes": "keyframes", "psnr_deblurred": "psnr_deblurred", "psnr_blurry": "psnr_blurry",
+               "ssim_deblurred": "ssim_deblurred", "ssim_blurry": "ssim_blurry"}
+
+
+def _method_cell(row: dict) -> dict:
+    """A sweep row as the benchmark's per-method dict (deblurring under ``deblur``)."""
+    if row.get("status") != "ok":
+        return {"error": row.get("error", "failed")}
+    cell = {k: v for k, v in row.items() if k not in ROW_KEYS and k not in DEBLUR_KEYS and k != "error"}
+    deblur = {DEBLUR_KEYS[k]: row[k] for k in DEBLUR_KEYS if row.get(k) is not None}
+    return {**cell, "deblur": deblur} if deblur else cell
+
+
+def nested_results(rows: list[dict], depth_weight: float) -> dict:
+    """Sweep rows as the odometry benchmark's results: per sequence its blur, frames, depth noise
+    and ``methods`` (method -> numbers, or ``{"error": ...}``)."""
+    res = {}
+    for row in rows:
+        entry = res.setdefault(row["sequence"], {"mean_blur_px": None, "frames": None, "depth_sigma": None,
+                                                 "depth_weight": depth_weight, "methods": {}})
+        for k in ("mean_blur_px", "frames", "depth_sigma"):
+            entry[k] = entry[k] if entry[k] is not None else row.get(k)
+        entry["methods"][row["method"]] = _method_cell(row)
+    return res
 
 
 def run_odometry_benchmark(sequences: dict, out_root, progress: bool = True, tracker_overrides: dict | None = None,
                            depth_weight: float = 0.03, methods=ODOMETRY_METHODS,
-                           peer_depth_max: float = BenchConfig().peer_depth_max) -> dict:
-    """ATE (SE3) and frame drops of each of ``methods`` (see ODOMETRY_METHODS) on each sequence.
+                           peer_depth_max: float = BenchConfig().peer_depth_max, settings: SweepConfig = SweepConfig()) -> dict:
+    """ATE (SE3) and frame drops of each of ``methods`` (see ODOMETRY_METHODS) on each sequence,
+    run as a sweep into ``out_root`` (``runs/<sequence>/<method>/``, results.csv/.md, ate.png).
     Ours: whole-loop seconds per frame (compilation, keyframes and deblurring included), ``*_depth``
     with ``depth_weight``; peers: their median odometry call. ``tracker_overrides``: TrackerConfig
-    fields for our runs (e.g. for small images)."""
-    check_methods(methods)
-    out_root = pathlib.Path(out_root)
-    results = {}
-    for name, path in sequences.items():
-        seq = open_sequence(path)
-        base = TrackerConfig(**{**(tracker_overrides or {}), **calibration_of(seq.meta), "depth_weight": 0.0})
-        row = {}
-        for method, cfg in _our_configs(base, depth_weight, methods).items():
-            if progress:
-                print(f"{name}: {method}", file=sys.stderr)
-            row[method] = _run_ours(seq, out_root / name / method, cfg, progress)
-            if method == "ours_n64":
-                row[method]["deblur"] = _deblur_quality(seq, out_root / name / method)
-        row.update(_run_peers(seq, out_root / name, methods, progress, name, peer_depth_max))
-        synth = pathlib.Path(path) / "synth.yaml"
-        blur = yaml.safe_load(synth.read_text()).get("mean_blur_px") if synth.is_file() else None
-        results[name] = {"mean_blur_px": blur, "frames": len(seq), "depth_sigma": list(base.depth_sigma), "depth_weight": depth_weight, "methods": row}
-    return results
+    fields for our runs (e.g. for small images); ``settings``: jobs, engine."""
+    from .sweep import run_sweep, summary_line
+
+    spec = odometry_sweep(sequences, tracker_overrides, depth_weight, methods, peer_depth_max)
+    res = run_sweep(spec, out_root, settings, progress)
+    if progress:
+        print(summary_line(res), file=sys.stderr)
+    return nested_results(res.rows, depth_weight)
 
 
 def _exposure_cell(x: dict) -> str:
@@ -524,8 +555,9 @@ def tum_blurred(cfg: BenchConfig, quiet: bool = False) -> pathlib.Path:
     return out
 
 
-def main_odometry(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
-    """``mbavo bench odometry``: generated sequences at each blur preset plus the blurred TUM clip."""
+def main_odometry(cfg: BenchConfig, fmt: str = "table", quiet: bool = False, settings: SweepConfig = SweepConfig()) -> int:
+    """``mbavo bench odometry``: generated sequences at each blur preset plus the blurred TUM clip,
+    run as a sweep (``settings``: jobs, engine; finished runs in ``cfg.out`` are kept)."""
     methods = parse_methods(cfg.methods, cfg.no_peers)
     seqs = {}
     for preset in filter(None, cfg.presets.split(",")):
@@ -540,7 +572,7 @@ def main_odometry(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> 
     seqs = _with_hidden_exposure(seqs, cfg.hide_exposure)
     root = pathlib.Path(cfg.out)
     res = run_odometry_benchmark(seqs, root, progress=not quiet, depth_weight=cfg.depth_weight, methods=methods,
-                                 peer_depth_max=cfg.peer_depth_max)
+                                 peer_depth_max=cfg.peer_depth_max, settings=settings)
     print(json.dumps(res, indent=2) if fmt == "json" else format_odometry_table(res))
     (root / "results.json").write_text(json.dumps(res, indent=2))
     return 0

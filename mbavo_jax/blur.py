@@ -7,6 +7,10 @@ the blurry frame, with unit ray π⁻¹(x) and plane depth d, is transferred for
     v_i(x) = I_ref(π(T_ref_i · plane(x, d)))            (Eqs. 61-68, :func:`virtual_sample`)
     B(x)   = 1/n Σ_i v_i(x)                              (Eq. 6, :func:`synthesize`)
 
+With a rolling shutter (readout fraction ρ > 0, ``geometry.trajectory.row_times``) the virtual
+poses depend on the pixel's row: a pose table (rows x n, :func:`virtual_pq_table`) is interpolated
+once and each pixel gathers its row's poses; a table of one row is the global shutter.
+
 :func:`synthesize` is the model; the tracker's residuals, :func:`reblur` (sparse pixels),
 :func:`render_blurry` (whole images, in pixel chunks so memory stays bounded), deblurring (its
 linear operator) and the generator's blurring of real clips all call it.
@@ -20,27 +24,43 @@ import math
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from .geometry.camera import PinholeCamera
 from .geometry.pose import Pose
-from .geometry.trajectory import ExposureTrajectory, interpolate, virtual_times
+from .geometry.spline import ExposurePath
+from .geometry.trajectory import ExposureTrajectory, row_times, virtual_times
 from .geometry.transfer import plane_point, plane_transfer
 from .image import bilinear_with_gradient
 
-__all__ = ["virtual_pq", "virtual_sample", "synthesize", "reblur", "render_blurry", "plane_depths_from_keyframe",
-           "blur_lengths", "round_up_pow2"]
+__all__ = ["virtual_pq", "virtual_pq_table", "virtual_sample", "synthesize", "reblur", "render_blurry",
+           "plane_depths_from_keyframe", "blur_lengths", "round_up_pow2"]
 
 RENDER_CHUNK = 4096  # pixels per chunk of ``render_blurry`` (n x chunk samples live at once)
 
 
-def virtual_pq(trajectory: ExposureTrajectory, n: int) -> Float[Array, "n 7"]:
-    """The n virtual poses T_ref_i (Eqs. 43-44) as rows [t (3), q̄ (4)]."""
+def virtual_pq(trajectory: ExposurePath, n: int) -> Float[Array, "n 7"]:
+    """The n virtual poses T_ref_i (Eqs. 43-44) as rows [t (3), q̄ (4)]: the global shutter's table."""
     def one(s):
-        p = interpolate(trajectory.start, trajectory.end, s)
+        p = trajectory.at(s)
         return jnp.concatenate([p.t, p.q])
 
     return jax.vmap(one)(virtual_times(n, trajectory.start.q.dtype))
+
+
+def virtual_pq_table(trajectory: ExposurePath, times: Float[Array, "B n"]) -> Float[Array, "B n 7"]:
+    """The virtual poses at normalised times ``times`` (one row per row bucket), rows [t, q̄]."""
+    def one(s):
+        p = trajectory.at(s)
+        return jnp.concatenate([p.t, p.q])
+
+    return jax.vmap(jax.vmap(one))(times)
+
+
+def is_rolling(readout) -> bool:
+    """Whether ``readout`` (ρ) needs the per-row model: False only for a concrete 0 (a traced ρ
+    may be anything), so the global shutter keeps its one-row program."""
+    return isinstance(readout, jax.core.Tracer) or float(readout) != 0.0
 
 
 def virtual_sample(image: Float[Array, "H W"], camera: PinholeCamera, pq: Float[Array, "7"], ray: Float[Array, "3"], d):
@@ -54,30 +74,50 @@ def virtual_sample(image: Float[Array, "H W"], camera: PinholeCamera, pq: Float[
     return value, grad, safe, ok & inside
 
 
+def per_pixel_poses(sample, pqs: Float[Array, "B n 7"], rows: Int[Array, " R"], rays: Float[Array, "R 3"], depths: Float[Array, " R"]):
+    """``sample(pq, ray, d)`` for each virtual frame i and pixel r at its row bucket's pose
+    ``pqs[rows[r], i]``: outputs stacked (n, R, ...). One bucket (the global shutter) needs no gather."""
+    if pqs.shape[0] == 1:
+        return jax.vmap(lambda pq: jax.vmap(lambda ray, d: sample(pq, ray, d))(rays, depths))(pqs[0])
+    return jax.vmap(lambda pq: jax.vmap(sample)(pq, rays, depths), in_axes=1)(pqs[rows])
+
+
 def synthesize(
-    image: Float[Array, "H W"], camera: PinholeCamera, pqs: Float[Array, "n 7"], rays: Float[Array, "R 3"], depths: Float[Array, " R"]
+    image: Float[Array, "H W"], camera: PinholeCamera, pqs: Float[Array, "B n 7"], rays: Float[Array, "R 3"], depths: Float[Array, " R"],
+    rows: Int[Array, " R"],
 ) -> tuple[Float[Array, " R"], Bool[Array, " R"]]:
     """Eq. 6: blurry intensities at R pixels (unit rays, plane depths) from the sharp ``image`` and
-    the n virtual poses; a pixel is valid only if all n samples are (invalid pixels are 0)."""
-    per_pose = lambda pq: jax.vmap(lambda ray, d: virtual_sample(image, camera, pq, ray, d))(rays, depths)
-    values, _, _, ok = jax.vmap(per_pose)(pqs)  # (n, R)
+    the pose table ``pqs`` (pixel r uses row bucket ``rows[r]``); a pixel is valid only if all n
+    samples are (invalid pixels are 0)."""
+    sample = lambda pq, ray, d: virtual_sample(image, camera, pq, ray, d)
+    values, _, _, ok = per_pixel_poses(sample, pqs, rows, rays, depths)  # (n, R)
     valid = jnp.all(ok, axis=0)
     return jnp.where(valid, jnp.mean(values, axis=0), 0.0), valid
 
 
-@partial(jax.jit, static_argnames=("n",))
 def reblur(
     keyframe: Float[Array, "H W"],
     camera: PinholeCamera,
-    trajectory: ExposureTrajectory,
+    trajectory: ExposurePath,
     pixels: Float[Array, "P 2"],
     depths: Float[Array, " P"],
     n: int,
+    readout=0.0,
 ) -> tuple[Float[Array, " P"], Bool[Array, " P"]]:
     """:func:`synthesize` at ``pixels`` of the current frame with plane depths ``depths`` (Z in the
-    keyframe) along ``trajectory`` with n virtual frames."""
+    keyframe) along ``trajectory`` with n virtual frames; ``readout`` is ρ (each pixel's own row
+    times, continuous rows allowed)."""
+    return _reblur(keyframe, camera, trajectory, pixels, depths, jnp.asarray(readout, pixels.dtype), n, is_rolling(readout))
+
+
+@partial(jax.jit, static_argnames=("n", "rolling"))
+def _reblur(keyframe, camera: PinholeCamera, trajectory, pixels, depths, readout, n: int, rolling: bool):
     rays = jax.vmap(camera.unit_ray)(pixels)
-    return synthesize(keyframe, camera, virtual_pq(trajectory, n), rays, depths)
+    if not rolling:
+        return synthesize(keyframe, camera, virtual_pq(trajectory, n)[None], rays, depths, jnp.zeros(pixels.shape[0], jnp.int32))
+    times = row_times(n, pixels[:, 1], camera.height, readout)
+    rows = jnp.arange(pixels.shape[0], dtype=jnp.int32)
+    return synthesize(keyframe, camera, virtual_pq_table(trajectory, times), rays, depths, rows)
 
 
 def _pixel_grid(width: int, height: int, dtype):
@@ -118,27 +158,39 @@ def plane_depths_from_keyframe(
     return jnp.where(d > 0, d, jnp.nan).reshape(h, w)
 
 
-@partial(jax.jit, static_argnames=("n",))
 def render_blurry(
     keyframe: Float[Array, "H W"],
     plane_depths: Float[Array, "H W"],
     camera: PinholeCamera,
-    trajectory: ExposureTrajectory,
+    trajectory: ExposurePath,
     n: int,
+    readout=0.0,
 ) -> tuple[Float[Array, "H W"], Bool[Array, "H W"]]:
     """A whole blurry image of the current frame (same size as the keyframe): :func:`synthesize` on
-    every pixel, in chunks of ``RENDER_CHUNK`` pixels. ``plane_depths`` holds d per pixel (e.g. from
-    :func:`plane_depths_from_keyframe`); NaN or non-positive depth marks a pixel invalid. Returns
-    the image and its validity mask; invalid pixels are 0."""
+    every pixel, in chunks of ``RENDER_CHUNK`` pixels, each row at its own times (``readout``: ρ).
+    ``plane_depths`` holds d per pixel (e.g. from :func:`plane_depths_from_keyframe`); NaN or
+    non-positive depth marks a pixel invalid. Returns the image and its validity mask; invalid
+    pixels are 0."""
+    return _render_blurry(keyframe, plane_depths, camera, trajectory, jnp.asarray(readout, keyframe.dtype), n, is_rolling(readout))
+
+
+@partial(jax.jit, static_argnames=("n", "rolling"))
+def _render_blurry(keyframe, plane_depths, camera: PinholeCamera, trajectory, readout, n: int, rolling: bool):
     h, w = keyframe.shape
     d = plane_depths.ravel()
     d_ok = jnp.isfinite(d) & (d > 0)
-    rays = jax.vmap(camera.unit_ray)(_pixel_grid(w, h, keyframe.dtype))
-    pqs = virtual_pq(trajectory, n)
+    grid = _pixel_grid(w, h, keyframe.dtype)
+    rays = jax.vmap(camera.unit_ray)(grid)
+    if rolling:
+        pqs = virtual_pq_table(trajectory, row_times(n, jnp.arange(h, dtype=keyframe.dtype), h, readout))
+        rows = grid[:, 1].astype(jnp.int32)
+    else:
+        pqs, rows = virtual_pq(trajectory, n)[None], jnp.zeros(h * w, jnp.int32)
     pad = (-h * w) % RENDER_CHUNK
     rays = jnp.pad(rays, ((0, pad), (0, 0)), constant_values=1.0).reshape(-1, RENDER_CHUNK, 3)
     depths = jnp.pad(jnp.where(d_ok, d, 1.0), (0, pad), constant_values=1.0).reshape(-1, RENDER_CHUNK)
-    values, valid = jax.lax.map(lambda rd: synthesize(keyframe, camera, pqs, *rd), (rays, depths))
+    rows = jnp.pad(rows, (0, pad)).reshape(-1, RENDER_CHUNK)
+    values, valid = jax.lax.map(lambda rdv: synthesize(keyframe, camera, pqs, *rdv), (rays, depths, rows))
     values, valid = values.ravel()[: h * w], valid.ravel()[: h * w] & d_ok
     return jnp.where(valid, values, 0.0).reshape(h, w), valid.reshape(h, w)
 

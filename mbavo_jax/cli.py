@@ -1,4 +1,4 @@
-"""The ``mbavo`` command line: ``mbavo jacobians | synth | eval | track | deblur | demo | info | bench | config``.
+"""The ``mbavo`` command line: ``mbavo jacobians | synth | eval | track | deblur | demo | view | info | bench | sweep | config``.
 
 Known errors (bad input files, bad options) print one line ``mbavo: error: ...`` and exit 1.
 Building the parser and rejecting arguments import no JAX; each command imports what it needs.
@@ -12,8 +12,8 @@ import json
 import signal
 import sys
 
-from .config import (AT_LEAST_1, FINITE, POSITIVE, PRESETS, BenchConfig, DeblurConfig, OdometryConfig, SynthConfig, add_arguments,
-                     from_arguments)
+from .config import (AT_LEAST_1, FINITE, NONNEG, POSITIVE, PRESETS, BenchConfig, DeblurConfig, OdometryConfig, SweepConfig, SynthConfig,
+                     add_arguments, from_arguments)
 from .errors import MbavoError as UserError  # every user-facing error: one line, exit status 1
 from .methods import ODOMETRY_METHODS
 
@@ -41,15 +41,25 @@ def positive_int(text: str) -> int:
     return value
 
 
-def positive_float(text: str) -> float:
-    """argparse type: a finite number > 0 (the settings' ``FINITE`` and ``POSITIVE``)."""
+def _checked_float(text: str, check) -> float:
+    """argparse type: a finite number passing ``check`` (a settings ``Check``)."""
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number {POSITIVE.text}, got {text!r}") from None
-    if not (FINITE.ok(value) and POSITIVE.ok(value)):
-        raise argparse.ArgumentTypeError(f"must be a {FINITE.text} number {POSITIVE.text}, got {text}")
+        raise argparse.ArgumentTypeError(f"expected a number {check.text}, got {text!r}") from None
+    if not (FINITE.ok(value) and check.ok(value)):
+        raise argparse.ArgumentTypeError(f"must be a {FINITE.text} number {check.text}, got {text}")
     return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0 (the settings' ``FINITE`` and ``POSITIVE``)."""
+    return _checked_float(text, POSITIVE)
+
+
+def nonneg_float(text: str) -> float:
+    """argparse type: a finite number >= 0 (the settings' ``FINITE`` and ``NONNEG``)."""
+    return _checked_float(text, NONNEG)
 
 
 # ------------------------------------------------------------------------------------- commands
@@ -75,7 +85,8 @@ def _cmd_synth(args) -> int:
         given = lambda value, default: default if value is None else value
         summary = blur_real_sequence(seq, args.out, blur_px=given(args.blur_px, PRESET_BLUR_PX[args.preset]),
                                      n=given(args.subframes, 64), seed=given(args.seed, 0), noise=given(args.noise, 0.0),
-                                     progress=not args.quiet, exposure_info=args.exposure_info is not False)
+                                     progress=not args.quiet, exposure_info=args.exposure_info is not False,
+                                     readout_ms=given(args.readout_ms, 0.0))
     else:
         cfg = from_arguments(SynthConfig, args, PRESETS[args.preset])
         from .synthetic import generate_sequence
@@ -117,7 +128,9 @@ def _cmd_eval(args) -> int:
         est = read_exposure_file(args.estimate)
         cam = read_camera_yaml(args.camera)
         res = ev.exposure_path_error(ref, est, cam, depth=args.depth, max_diff=args.t_max_diff)
-        _print_result(res, args.format, ["n_matched"], nested=("translation_m", "rotation_deg", "reprojection_px", "length_ratio"))
+        res.update(_row_errors(args, est, cam))
+        _print_result(res, args.format, ["n_matched", "rows", "readout_fraction", "per_row_px"],
+                      nested=("translation_m", "rotation_deg", "reprojection_px", "length_ratio", "row_reprojection_px"))
         return 0
     t_ref, p_ref = read_tum_trajectory(args.reference)
     t_est, p_est = read_tum_trajectory(args.estimate)
@@ -137,6 +150,28 @@ def _cmd_eval(args) -> int:
     return 0
 
 
+def _row_errors(args, est, cam: dict) -> dict:
+    """'eval exposure': the per-row endpoint error against --rows (default: exposure_rows.txt next to
+    the reference, when there is one), rows of the estimate taken with its model's readout fraction
+    (--readout-ms, exposure --exposure-ms or camera.yaml's); {} without per-row ground truth."""
+    import pathlib
+
+    from . import evaluation as ev
+    from .geometry.trajectory import readout_fraction
+    from .io import read_exposure_rows
+
+    rows = pathlib.Path(args.rows) if args.rows else pathlib.Path(args.reference).parent / "exposure_rows.txt"
+    if not args.rows and not rows.is_file():
+        return {}
+    exposure_ms = args.exposure_ms if args.exposure_ms is not None else cam.get("exposure_ms")
+    if args.readout_ms > 0 and exposure_ms is None:
+        raise UserError("--readout-ms needs the exposure time: --exposure-ms, or exposure_ms in the --camera file")
+    rho = readout_fraction(args.readout_ms / 1000.0, (exposure_ms or 0.0) / 1000.0)
+    res = ev.row_path_error(read_exposure_rows(rows), est, cam, rho, depth=args.depth, max_diff=args.t_max_diff)
+    return {"rows": res["rows"], "readout_fraction": round(rho, 6), "row_reprojection_px": res["reprojection_px"],
+            "per_row_px": [round(x, 4) for x in res["per_row_px"]]}
+
+
 def _cmd_info(args) -> int:
     from .datasets import open_sequence
     from .progress import bar
@@ -151,6 +186,7 @@ def _cmd_info(args) -> int:
         "camera": cam.as_dict(),
         "depth": seq.has_depth,
         "exposure_times": seq.exposures is not None,
+        "readout_ms": 1000 * seq.readout_s,
         "groundtruth_poses": 0 if seq.groundtruth is None else int(len(seq.groundtruth[0])),
         "exposure_paths": 0 if seq.exposure_paths is None else int(len(seq.exposure_paths[0])),
     }
@@ -175,12 +211,36 @@ def _run_config(args, seq):
     return load_config(args.config, args.set, calibration_of(seq.meta))
 
 
+def _viewer(args, seq, config):
+    """The run's rerun recording (``--viewer``: a window, ``--rrd FILE``: a file), or a stand-in
+    that records nothing when neither is given."""
+    import contextlib
+
+    if not (args.viewer or args.rrd):
+        return contextlib.nullcontext(None)
+    from .viewer import RunViewer
+
+    return RunViewer(seq.camera, config.tracker.response_gamma, seq.groundtruth, rrd=args.rrd, spawn=args.viewer)
+
+
+def _check_viewer(args) -> None:
+    """With ``--viewer`` or ``--rrd``: rerun-sdk must be installed, and a window needs a display
+    (one-line errors before anything runs)."""
+    if args.viewer or args.rrd:
+        from .viewer import check_display, require_rerun
+
+        require_rerun()
+        if args.viewer:
+            check_display()
+
+
 def _cmd_track(args) -> int:
     import pathlib
 
     from .datasets import open_sequence
     from .evaluation import evaluate_run
 
+    _check_viewer(args)
     seq = open_sequence(args.sequence, args.kind)
     if args.mode:
         args.set = [*(args.set or []), f"odometry.mode={args.mode}"]
@@ -188,8 +248,9 @@ def _cmd_track(args) -> int:
     from .odometry import run_odometry
 
     out = pathlib.Path(args.out)
-    summary = run_odometry(seq, out, config, resume=args.resume or args.resume_anyway, max_frames=args.max_frames,
-                           progress=not args.quiet, resume_anyway=args.resume_anyway)
+    with _viewer(args, seq, config) as viewer:
+        summary = run_odometry(seq, out, config, resume=args.resume or args.resume_anyway, max_frames=args.max_frames,
+                               progress=not args.quiet, resume_anyway=args.resume_anyway, observer=viewer)
     summary.update(evaluate_run(out, seq.groundtruth, seq.timestamps, config.evaluation, plots=True))
     summary["out"] = str(out)
     if args.format == "json":
@@ -261,6 +322,7 @@ def _exposure_paths(args, seq):
 def _cmd_demo(args) -> int:
     from .io import prepare_out_dir
 
+    _check_viewer(args)
     out = prepare_out_dir(args.out)
     from .datasets import open_sequence
     from .evaluation import evaluate_run
@@ -276,7 +338,8 @@ def _cmd_demo(args) -> int:
     config = _run_config(args, seq)
     run = out / "track"
     print(f"tracking with n={config.tracker.n} virtual frames -> {run}", flush=True)
-    summary = run_odometry(seq, run, config, progress=not args.quiet)
+    with _viewer(args, seq, config) as viewer:
+        summary = run_odometry(seq, run, config, progress=not args.quiet, observer=viewer)
     summary.update(evaluate_run(run, seq.groundtruth, seq.timestamps, config.evaluation, plots=True))
     print(
         f"tracked {summary['tracked']}/{summary['frames']} frames, {summary['keyframes']} keyframes, "
@@ -285,10 +348,27 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def _cmd_view(args) -> int:
+    from .viewer import require_rerun
+
+    require_rerun()
+    from .viewer import view_run
+
+    res = view_run(args.run, rrd=args.rrd, sequence=args.sequence, progress=not args.quiet)
+    if args.rrd:
+        print(f"wrote {res['frames']} frames to {args.rrd} (open it with: rerun {args.rrd})")
+    return 0
+
+
 def _cmd_bench(args) -> int:
     from .methods import parse_methods
 
+    if args.what == "rolling-shutter":
+        from .bench_rolling import ROLLING_DEFAULTS, main_rolling
+
+        return main_rolling(from_arguments(BenchConfig, args, ROLLING_DEFAULTS), args.format, args.quiet)
     cfg = from_arguments(BenchConfig, args)
+    settings = from_arguments(SweepConfig, args)
     if args.what == "odometry":
         parse_methods(cfg.methods, cfg.no_peers)  # reject unknown methods before loading JAX
     from . import bench
@@ -299,7 +379,17 @@ def _cmd_bench(args) -> int:
         from .bench_mono import main_mono
 
         return main_mono(cfg, args.format, args.quiet)
-    return bench.main_odometry(cfg, args.format, args.quiet)
+    if args.what == "speed":
+        from .bench_speed import main_speed
+
+        return main_speed(cfg, args.format, args.quiet)
+    return bench.main_odometry(cfg, args.format, args.quiet, settings)
+
+
+def _cmd_sweep(args) -> int:
+    from .sweep import main
+
+    return main(args.spec, args.out, from_arguments(SweepConfig, args), args.format, args.quiet)
 
 
 def _cmd_config(args) -> int:
@@ -366,13 +456,39 @@ def _add_bench(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks: 'tracking' (frame pairs, vs Open3D/OpenCV), 'odometry' (whole RGB-D sequences, ATE) and "
                        "'mono' (the monocular system vs n = 1 and RGB-D)",
                        description="odometry methods: " + ", ".join(ODOMETRY_METHODS))
-    p.add_argument("what", choices=["tracking", "odometry", "mono"])
+    p.add_argument("what", choices=["tracking", "odometry", "mono", "rolling-shutter", "speed"],
+                   help="rolling-shutter: methods rs, blur, n1, rs_cubic on sequences at --presets (default strong,extreme) x "
+                        "--readouts, plus a curved-path set (--shake-deg); --out default runs/bench_rolling. speed: per --preset, the whole loop "
+                        "profiled (tracking, deblurring, keyframes, I/O, compilation) vs Open3D hybrid, and start-up with and without the "
+                        "compilation cache")
     p.add_argument("--data", help="tracking: a generated sequence (default: generate runs/bench_<preset>_<w>x<h>_seed<s>)")
     add_arguments(p, BenchConfig, skip=("no_peers",))
     p.add_argument("--no-peers", dest="no_peers", action="store_true", default=None, help="skip Open3D and OpenCV")
+    add_arguments(p.add_argument_group("odometry: how the runs execute (a sweep; finished runs in --out are kept)"), SweepConfig)
     _format_flag(p)
     _quiet_flag(p)
     p.set_defaults(func=_cmd_bench)
+
+
+def _add_sweep(sub) -> None:
+    p = sub.add_parser("sweep", help="many runs at once: sequences x configurations (and peers) from a YAML, on a process pool or Ray; "
+                       "one results table (CSV, markdown, ATE plot)",
+                       description="SWEEP.yaml: sequences: (path: DIR | preset: strong with seed: [1, 2], frames:, width:, ... | "
+                                   "from: RGBD_DIR, blur_px:), configurations: (name: {section.key: value or [values]}), peers: "
+                                   "(open3d, open3d_color, opencv), base:, config:, peer_depth_max: (configs/sweeps/*.yaml). "
+                                   "Runs finished by an earlier call with --out DIR are kept. On a Ray cluster (--address) every node "
+                                   "needs mbavo_jax installed and must see DIR and the sequences at the same paths.")
+    p.add_argument("spec", metavar="SWEEP.yaml", help="the sweep file")
+    p.add_argument("--out", required=True, help="output folder: data/, runs/<sequence>/<method>/, results.csv, results.md, ate.png")
+    add_arguments(p, SweepConfig)
+    _format_flag(p)
+    _quiet_flag(p)
+    p.set_defaults(func=_cmd_sweep)
+
+
+def _viewer_flags(p) -> None:
+    p.add_argument("--viewer", action="store_true", help="open the rerun viewer and stream the run to it (needs the viewer extra)")
+    p.add_argument("--rrd", metavar="FILE", help="save the rerun recording of the run to FILE (open later: rerun FILE)")
 
 
 def _add_track(sub) -> None:
@@ -388,6 +504,7 @@ def _add_track(sub) -> None:
     mode = {f.name: f for f in dataclasses.fields(OdometryConfig)}["mode"]
     p.add_argument("--mode", choices=mode.metadata["choices"], help=f"odometry.mode: {mode.metadata['help']}")
     p.add_argument("--kind", default="auto", choices=KINDS)
+    _viewer_flags(p)
     _format_flag(p)
     _quiet_flag(p, "no progress bar")
     p.set_defaults(func=_cmd_track)
@@ -413,8 +530,20 @@ def _add_demo(sub) -> None:
     p.add_argument("--height", type=int, default=240)
     p.add_argument("--seed", type=int, default=0)
     _config_flags(p)
+    _viewer_flags(p)
     _quiet_flag(p)
     p.set_defaults(func=_cmd_demo)
+
+
+def _add_view(sub) -> None:
+    p = sub.add_parser("view", help="show a finished run folder in the rerun viewer (needs the viewer extra)",
+                       description="Rebuilds the recording from the run folder (trajectory, exposure paths, keyframes, frames.csv, "
+                                   "points.ply) and the run's sequence (input images, depth, ground truth).")
+    p.add_argument("run", help="run folder (mbavo track ... --out RUN)")
+    p.add_argument("--sequence", help="the run's sequence folder (default: the one RUN/run.yaml records)")
+    p.add_argument("--rrd", metavar="FILE", help="write the recording to FILE instead of opening the viewer")
+    _quiet_flag(p)
+    p.set_defaults(func=_cmd_view)
 
 
 def _add_info(sub) -> None:
@@ -439,6 +568,11 @@ def _add_eval(sub) -> None:
     p.add_argument("--sequence", help="sequence folder: also report the frame-drop rate")
     p.add_argument("--camera", help="camera.yaml (needed for 'exposure')")
     p.add_argument("--depth", type=positive_float, default=2.0, help="'exposure': depth of the reprojection grid in m (default 2)")
+    p.add_argument("--rows", metavar="FILE", help="'exposure': per-row ground truth of a rolling shutter (default: exposure_rows.txt "
+                   "next to the reference, when there is one): also the per-row endpoint error")
+    p.add_argument("--readout-ms", type=nonneg_float, default=0.0,
+                   help="'exposure' with rows: the readout time the estimate's model assumed (default 0: a global-shutter estimate)")
+    p.add_argument("--exposure-ms", type=positive_float, help="'exposure' with rows: the exposure time (default: camera.yaml's exposure_ms)")
     p.add_argument("--plot", metavar="DIR", help="write PNG plots to DIR")
     _format_flag(p)
     p.set_defaults(func=_cmd_eval)
@@ -450,7 +584,7 @@ def _add_config(sub) -> None:
     p.set_defaults(func=_cmd_config)
 
 
-SUBCOMMANDS = (_add_jacobians, _add_synth, _add_bench, _add_track, _add_deblur, _add_demo, _add_info, _add_eval, _add_config)
+SUBCOMMANDS = (_add_jacobians, _add_synth, _add_bench, _add_sweep, _add_track, _add_deblur, _add_demo, _add_view, _add_info, _add_eval, _add_config)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -22,7 +22,7 @@ from .errors import ConfigError
 
 __all__ = [
     "setting", "TrackerConfig", "OdometryConfig", "DeblurConfig", "EvalConfig", "RunConfig", "SynthConfig",
-    "BenchConfig", "MonoConfig", "PRESETS", "DEPTH_SIGMA", "load_config", "default_yaml", "settings_markdown", "add_arguments",
+    "BenchConfig", "SweepConfig", "MonoConfig", "RuntimeConfig", "PRESETS", "DEPTH_SIGMA", "load_config", "default_yaml", "settings_markdown", "add_arguments",
     "from_arguments", "as_dict", "calibration_of",
 ]
 
@@ -144,6 +144,8 @@ class TrackerConfig(Settings):
     n_min: int = setting(2, "adaptive n: at least this many virtual frames", AT_LEAST_1)
     n_per_blur_px: float = setting(2.0, "adaptive n: virtual frames per pixel of predicted blur (power of two, <= n)", POSITIVE)
     jacobian: str = setting("analytic", "analytic (the supplement's corrected formulas) | autodiff", choices=("analytic", "autodiff"))
+    trajectory: str = setting("linear", "exposure path: linear (start and end poses, Eqs. 43-44) | cubic (cumulative cubic B-spline, "
+                              "four control poses; its pose Jacobian always by autodiff)", choices=("linear", "cubic"))
     huber: float = setting(9.0 / 255.0, "Huber threshold on [0, 1] intensities (9/255)", POSITIVE)
     max_steps: tuple[int, ...] = setting((8, 10, 12, 20), "Levenberg-Marquardt steps per level (fine -> coarse)", AT_LEAST_1)
     rtol: float = setting(1e-3, "LM relative tolerance (optimistix, RMS norm)", POSITIVE)
@@ -161,6 +163,8 @@ class TrackerConfig(Settings):
     hypotheses: bool = setting(True, "try DSO-style motion hypotheses when the first solve is poor")
     hypothesis_rotation_deg: float = setting(2.0, "the rotation hypotheses turn the guess by this much about each axis", POSITIVE)
     response_gamma: float = setting(1.0, "photometric calibration: images are linearised as I^gamma (camera.yaml's wins)", POSITIVE)
+    readout_s: float = setting(0.0, "rolling shutter: first row's start to last row's start, seconds (0 = global shutter; "
+                                     "camera.yaml's readout_ms wins)", NONNEG)
     blur_prior: float = setting(0.01, "weak prior on the exposure motion start^-1 end: its intensity scale (0 = off)", NONNEG)
     blur_prior_min_rad: float = setting(5e-4, "prior sigma = min + rel * |initial exposure motion| (radians)", POSITIVE)
     blur_prior_rel: float = setting(0.2, "see blur_prior_min_rad", NONNEG)
@@ -273,6 +277,8 @@ class DeblurConfig(Settings):
     n_max: int = setting(64, "with n = 0: at most this many virtual frames", AT_LEAST_1)
     iterations: int = setting(30, "conjugate-gradient iterations", AT_LEAST_1)
     regularization: float = setting(2e-2, "weight lambda of the gradient penalty", NONNEG)
+    solver: str = setting("table", "table (every sample's bilinear cell found once per keyframe) | render (render_blurry at "
+                          "every iteration: the reference, slower)", choices=("table", "render"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -314,6 +320,16 @@ class MonoConfig(Settings):
 
 
 @dataclasses.dataclass(frozen=True)
+class RuntimeConfig(Settings):
+    """How the process runs JAX: the persistent compilation cache (``mbavo_jax.runtime``)."""
+
+    section: typing.ClassVar[str] = "runtime"
+
+    compilation_cache: bool = setting(True, "keep compiled programs on disk so that a second run with the same settings compiles nothing")
+    cache_dir: str = setting("", "folder of the compilation cache ('' = $XDG_CACHE_HOME/mbavo_jax/jax, i.e. ~/.cache/mbavo_jax/jax)")
+
+
+@dataclasses.dataclass(frozen=True)
 class RunConfig:
     """The sections of a config file (``configs/default.yaml``): one per settings class."""
 
@@ -322,6 +338,7 @@ class RunConfig:
     deblur: DeblurConfig = dataclasses.field(default_factory=DeblurConfig)
     evaluation: EvalConfig = dataclasses.field(default_factory=EvalConfig)
     mono: MonoConfig = dataclasses.field(default_factory=MonoConfig)
+    runtime: RuntimeConfig = dataclasses.field(default_factory=RuntimeConfig)
 
     def replace(self, **sections) -> "RunConfig":
         """A copy with fields of sections replaced: ``cfg.replace(tracker=dict(n=32))``."""
@@ -360,6 +377,18 @@ class SynthConfig(Settings):
                          choices=("room", "cluttered", "deep", "distant"))
     exposure_info: bool = setting(True, "write the exposure time (camera.yaml exposure_ms, times.txt); false: as TUM/EuRoC/KITTI "
                                         "data come, with the ground-truth exposure paths kept only as groundtruth_exposure.txt")
+    readout_ms: float = setting(0.0, "rolling shutter: readout time in ms from the first row's exposure start to the last row's "
+                                "(0 = global shutter); rows are rendered at their own times", NONNEG)
+    shake_deg: float = setting(0.0, "handheld shake: amplitude (deg) of a rotation oscillation about the x and y axes added to the "
+                               "path, so that an exposure spans a curved path (0 = none)", NONNEG)
+    shake_hz: float = setting(12.0, "handheld shake: its frequency (Hz)", POSITIVE)
+
+    def relations(self) -> list[str]:
+        frame_ms = 1000.0 / self.fps
+        if self.readout_ms > frame_ms:
+            return [f"readout_ms ({self.readout_ms:g}) must not exceed the frame interval 1000/fps ({frame_ms:.3g} ms): "
+                    "the sensor reads one frame at a time"]
+        return []
 
 
 # Mean blur length at 640x480 (``mbavo synth`` reports it): none 0 px, mild ~5, strong ~20, extreme ~40.
@@ -373,7 +402,7 @@ PRESETS: dict[str, dict] = {
 
 @dataclasses.dataclass(frozen=True)
 class BenchConfig(Settings):
-    """``mbavo bench tracking | odometry``: which data, which methods."""
+    """``mbavo bench tracking | odometry | mono | rolling-shutter``: which data, which methods."""
 
     frames: int = setting(20, "frame pairs (tracking) or frames per sequence (odometry)", AT_LEAST_1)
     preset: str = setting("strong,none", "tracking: comma-separated blur presets to generate and run")
@@ -393,6 +422,24 @@ class BenchConfig(Settings):
     scenes: str = setting("", "odometry: also generate these scenes (cluttered, deep, distant; comma-separated) at scene_presets")
     scene_presets: str = setting("strong,extreme", "odometry: the blur presets of the extra scenes")
     peer_depth_max: float = setting(4.0, "depth range (m) of Open3D and OpenCV odometry (their own default; docs/benchmarks.md compares 20 m)", POSITIVE)
+    readouts: str = setting("0,15,30", "rolling-shutter: readout times (ms) of the generated sequences, comma-separated")
+    shake_deg: float = setting(0.5, "rolling-shutter: handheld-shake amplitude (deg) of a second, curved-path set of sequences "
+                               "(every preset and readout again; 0 = none)", NONNEG)
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepConfig(Settings):
+    """``mbavo sweep`` and ``mbavo bench odometry``: how the runs are executed (``mbavo_jax.sweep``)."""
+
+    jobs: int = setting(1, "runs at once: worker processes (local), or what a Ray started here holds (not with address)", AT_LEAST_1)
+    engine: str = setting("local", "local: a process pool on this machine; ray: Ray tasks (pip install -e '.[ray]')",
+                          choices=("local", "ray"))
+    address: str = setting("", "ray: address of a running cluster (e.g. auto, ray://head:10001); '': start Ray on this machine")
+    threads: int = setting(0, "threads per run (XLA, OpenMP); 0: this machine's cores / jobs (local), 1 (ray)", NONNEG)
+    rerun: bool = setting(False, "run again the runs an earlier call finished (default: keep their rows)")
+
+    def relations(self) -> list[str]:
+        return ["address needs engine: ray"] if self.address and self.engine != "ray" else []
 
 
 # ------------------------------------------------------------------------------------ load, derive
@@ -443,10 +490,13 @@ def load_config(path=None, overrides: list[str] | None = None, calibration: dict
 
 
 def calibration_of(meta: dict) -> dict:
-    """The tracker settings a sequence's camera.yaml records: the response gamma and the depth noise."""
+    """The tracker settings a sequence's camera.yaml records: the response gamma, the depth noise
+    and the rolling-shutter readout (``readout_ms`` → ``readout_s``)."""
     out = {}
     if "response_gamma" in meta:
         out["response_gamma"] = float(meta["response_gamma"])
+    if "readout_ms" in meta:
+        out["readout_s"] = float(meta["readout_ms"]) / 1000.0
     if "depth_sigma" in meta:
         out["depth_sigma"] = tuple(float(x) for x in meta["depth_sigma"])
     return out
@@ -500,6 +550,8 @@ def _yaml_value(v) -> str:
         return ".inf" if v > 0 else "-.inf"
     if isinstance(v, tuple):
         return "[" + ", ".join(_yaml_value(x) for x in v) + "]"
+    if v == "":
+        return "''"  # YAML reads an empty value as null
     return repr(v) if isinstance(v, float) else str(v)
 
 
@@ -519,7 +571,8 @@ def settings_markdown() -> str:
     """The settings reference table of docs/settings.md (one table per section)."""
     out = []
     tables = {**{f"{k}` (config section)": v for k, v in SECTIONS.items()},
-              "mbavo synth` flags": SynthConfig, "mbavo bench` flags": BenchConfig}
+              "mbavo synth` flags": SynthConfig, "mbavo bench` flags": BenchConfig,
+              "mbavo sweep` and `mbavo bench odometry` flags": SweepConfig}
     for name, cls in tables.items():
         doc = (cls.__doc__ or "").strip().replace("\n    ", " ").replace("``", "`")
         out += [f"### `{name}", "", doc, "",

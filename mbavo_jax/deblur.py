@@ -6,30 +6,50 @@ the mid-exposure pose, transferred through the frame's depth planes) is linear i
 
     min_x ‖A x − b‖² + λ ‖∇x‖²
 
-by conjugate gradients on the normal equations (Aᵀ from ``jax.linear_transpose``), starting from b.
+by conjugate gradients on the normal equations, starting from b, with one of two forms of A
+(``DeblurConfig.solver``):
+
+* ``table`` (default): every sample's plane transfer is done once per frame; a
+  :class:`SamplingTable` keeps its bilinear cell (int32) and position in the cell (2 x uint16),
+  8 bytes per sample (n x H x W of them). A is then one gather of four cell corners per sample
+  and Aᵀ one scatter-add per virtual frame (:func:`table_blur`, :func:`table_blur_adjoint`);
+* ``render``: the reference; A is ``render_blurry`` itself (every transfer redone at every
+  application) and Aᵀ its ``jax.linear_transpose``.
+
+Both honour a rolling-shutter readout (each row's own virtual times) and give the same image up
+to float32 rounding.
 """
 
 from __future__ import annotations
 
 from functools import partial
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Bool, Float, Int, UInt16
 
-from .blur import blur_lengths, plane_depths_from_keyframe, render_blurry, round_up_pow2
+from .blur import blur_lengths, plane_depths_from_keyframe, render_blurry, round_up_pow2, virtual_pq, virtual_pq_table, virtual_sample
 from .config import DeblurConfig
 from .geometry.camera import PinholeCamera
 from .geometry.pose import Pose
-from .geometry.trajectory import ExposureTrajectory
-from .image import delinearize, linearize
+from .geometry.spline import ExposurePath
+from .geometry.trajectory import row_times
+from .image import bilinear_cell, delinearize, lerp_cell, linearize
 
-__all__ = ["deblur", "choose_deblur_n", "exposure_blur_px", "psnr", "ssim"]
+__all__ = ["deblur", "choose_deblur_n", "exposure_blur_px", "psnr", "ssim", "SamplingTable", "sampling_table", "table_blur",
+           "table_blur_adjoint"]
+
+FRACTION_ONE = 65535  # a sample's position inside its bilinear cell is stored as uint16 k / FRACTION_ONE
 
 
-def exposure_blur_px(depth, camera: PinholeCamera, trajectory: ExposureTrajectory, stride: int = 8) -> tuple[float, float]:
+def exposure_blur_px(depth, camera: PinholeCamera, trajectory: ExposurePath, stride: int = 8,
+                     readout: float = 0.0) -> tuple[float, float]:
     """Blur length of a frame in pixels, (mean, 95th percentile), over every ``stride``-th pixel with
-    valid depth (``blur.blur_lengths`` about the path's own mid pose). (0, 0) where no depth is valid."""
+    valid depth (``blur.blur_lengths`` about the path's own mid pose; with a rolling shutter of
+    readout fraction ``readout``, the middle row's own exposure). (0, 0) where no depth is valid."""
+    trajectory = trajectory.middle_row_path(readout)
     d = jnp.asarray(np.asarray(depth, np.float32)[::stride, ::stride])
     v, u = np.mgrid[0 : depth.shape[0] : stride, 0 : depth.shape[1] : stride]
     pixels = jnp.asarray(np.stack([u.ravel(), v.ravel()], 1), jnp.float32)
@@ -43,12 +63,13 @@ def exposure_blur_px(depth, camera: PinholeCamera, trajectory: ExposureTrajector
 _blur_lengths = jax.jit(blur_lengths)
 
 
-def choose_deblur_n(depth, camera: PinholeCamera, trajectory: ExposureTrajectory, config: DeblurConfig = DeblurConfig()) -> int:
+def choose_deblur_n(depth, camera: PinholeCamera, trajectory: ExposurePath, config: DeblurConfig = DeblurConfig(),
+                    readout: float = 0.0) -> int:
     """``config.n`` if positive, else one virtual frame per pixel of the frame's 95th-percentile blur
     (gaps between virtual frames make the deconvolution ring), a power of two in [n_min, n_max]."""
     if config.n > 0:
         return config.n
-    return round_up_pow2(exposure_blur_px(depth, camera, trajectory)[1], config.n_min, config.n_max)
+    return round_up_pow2(exposure_blur_px(depth, camera, trajectory, readout=readout)[1], config.n_min, config.n_max)
 
 
 def _grad_ops(x):
@@ -57,30 +78,106 @@ def _grad_ops(x):
     return gx, gy
 
 
-@partial(jax.jit, static_argnames=("n", "iterations"))
-def _deblur(blurry, planes, camera, traj, lam, n, iterations):
-    def A(x):
-        return render_blurry(x, planes, camera, traj, n)[0]
+class SamplingTable(eqx.Module):
+    """The blur operator A of one frame (Eq. 6 with every transfer done once): for virtual frame i
+    and pixel p (flattened), the flat index of the top-left pixel of the bilinear cell its sample
+    falls in (``corner``) and the position inside that cell (``frac``: fu, fv in units of
+    1/``FRACTION_ONE``: uint16 halves the memory and decodes faster than float16); ``valid``
+    marks the pixels whose n samples all land in the image (``blur.synthesize``'s rule)."""
 
-    valid = render_blurry(jnp.ones_like(blurry), planes, camera, traj, n)[1]
-    At = jax.linear_transpose(A, blurry)
-    b = jnp.where(valid, blurry, 0.0)
+    corner: Int[Array, "n P"]
+    frac: UInt16[Array, "n P 2"]
+    valid: Bool[Array, "H W"]
 
-    def normal(x):
-        (atax,) = At(jnp.where(valid, A(x), 0.0))
-        reg = jax.grad(lambda z: 0.5 * sum(jnp.sum(g * g) for g in _grad_ops(z)))(x)
-        return atax + lam * reg
 
-    (rhs,) = At(b)
-    # pixels that no valid blurry pixel sees keep the blurry value (the identity on them)
-    seen = At(valid.astype(blurry.dtype))[0] > 1e-6
-    rhs = jnp.where(seen, rhs, blurry)
-    op = lambda x: jnp.where(seen, normal(x), x)
+def _pose_table(traj: ExposurePath, n: int, h: int, readout, rolling: bool) -> Float[Array, "B n 7"]:
+    """The virtual poses [t, q̄] per row bucket: one bucket for the global shutter, one per image
+    row with a rolling shutter (``render_blurry``'s table)."""
+    if not rolling:
+        return virtual_pq(traj, n)[None]
+    return virtual_pq_table(traj, row_times(n, jnp.arange(h, dtype=traj.start.q.dtype), h, readout))
 
-    x = blurry
+
+TABLE_MAX_PIXELS = 2**24  # the table solver's limit (:func:`deblur` falls back to the render solver above it)
+
+
+def sampling_table(planes: Float[Array, "H W"], camera: PinholeCamera, traj: ExposurePath, n: int, readout,
+                   rolling: bool) -> SamplingTable:
+    """The :class:`SamplingTable` of a frame with plane depths ``planes`` (NaN: none) along ``traj``
+    (its own mid pose the reference), one virtual frame at a time: ``blur.virtual_sample``'s plane
+    point and validity, its cell read from an image holding its own flat indices (exact in float32
+    below 2^24 pixels)."""
+    h, w = planes.shape
+    if h * w >= TABLE_MAX_PIXELS:
+        raise ValueError(f"the table solver takes images below 2^24 pixels, got {w}x{h} (deblur.solver = render has no limit)")
+    index_image = jnp.arange(h * w, dtype=jnp.float32).reshape(h, w)
+    d = planes.ravel()
+    d_ok = jnp.isfinite(d) & (d > 0)
+    v, u = jnp.meshgrid(jnp.arange(h, dtype=planes.dtype), jnp.arange(w, dtype=planes.dtype), indexing="ij")
+    rays = jax.vmap(camera.unit_ray)(jnp.stack([u.ravel(), v.ravel()], -1))
+    depths = jnp.where(d_ok, d, 1.0)
+    pqs = _pose_table(traj, n, h, readout, rolling)
+
+    def pixel(pq, ray, depth):
+        _, _, p_ref, ok = virtual_sample(index_image, camera, pq, ray, depth)
+        _, fu, fv, corners = bilinear_cell(index_image, camera.project(p_ref))
+        return corners[0].astype(jnp.int32), jnp.round(jnp.stack([fu, fv]) * FRACTION_ONE).astype(jnp.uint16), ok
+
+    def frame(pq_rows):  # (B, 7): this virtual frame's pose per row bucket; each pose's rotation built once
+        if pq_rows.shape[0] == 1:
+            return jax.vmap(pixel, in_axes=(None, 0, 0))(pq_rows[0], rays, depths)
+        per_row = jax.vmap(jax.vmap(pixel, in_axes=(None, 0, 0)))(pq_rows, rays.reshape(h, w, 3), depths.reshape(h, w))
+        return jax.tree.map(lambda a: a.reshape(h * w, *a.shape[2:]), per_row)
+
+    corner, frac, ok = jax.lax.map(frame, jnp.swapaxes(pqs, 0, 1))
+    return SamplingTable(corner, frac, (jnp.all(ok, axis=0) & d_ok).reshape(h, w))
+
+
+def _fractions(frac: UInt16[Array, "P 2"], dtype) -> tuple[Float[Array, " P"], Float[Array, " P"]]:
+    """(fu, fv) of a table's stored fractions."""
+    scaled = frac.astype(dtype) * (1.0 / FRACTION_ONE)
+    return scaled[:, 0], scaled[:, 1]
+
+
+def table_blur(table: SamplingTable, x: Float[Array, "H W"]) -> Float[Array, "H W"]:
+    """A x: the mean over virtual frames of the bilinear samples the table points at (one gather of
+    a pixel's four cell corners per sample); invalid pixels are 0."""
+    h, w = x.shape
+    p = h * w
+    flat = jnp.pad(x.ravel(), (0, w + 1))
+    cells = jnp.stack([flat[:p], flat[1 : p + 1], flat[w : p + w], flat[w + 1 : p + w + 1]], axis=-1)
+
+    def add(acc, sample):
+        corner, frac = sample
+        c = cells.at[corner].get(mode="promise_in_bounds")
+        return acc + lerp_cell(*_fractions(frac, x.dtype), (c[:, 0], c[:, 1], c[:, 2], c[:, 3]))[0], None
+
+    total, _ = jax.lax.scan(add, jnp.zeros(p, x.dtype), (table.corner, table.frac))
+    return jnp.where(table.valid, total.reshape(h, w) / table.corner.shape[0], 0.0)
+
+
+def table_blur_adjoint(table: SamplingTable, y: Float[Array, "H W"]) -> Float[Array, "H W"]:
+    """Aᵀ y (the transpose of :func:`table_blur`): each valid pixel's value, over n, splatted onto
+    its samples' four cell corners with their bilinear weights (one scatter-add per virtual frame)."""
+    h, w = y.shape
+    p = h * w
+    share = jnp.where(table.valid, y, 0.0).ravel() / table.corner.shape[0]
+
+    def add(acc, sample):
+        corner, frac = sample
+        fu, fv = _fractions(frac, y.dtype)
+        weights = jnp.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], axis=-1)
+        return acc.at[corner].add(weights * share[:, None], mode="promise_in_bounds"), None
+
+    cells, _ = jax.lax.scan(add, jnp.zeros((p, 4), y.dtype), (table.corner, table.frac))
+    flat = jnp.pad(cells, ((w + 1, 0), (0, 0)))  # corner k of cell q is pixel q + (0, 1, w, w + 1)[k]
+    total = flat[w + 1 :, 0] + flat[w : p + w, 1] + flat[1 : p + 1, 2] + flat[: p, 3]
+    return total.reshape(h, w)
+
+
+def _cg(op, rhs, x, iterations: int):
+    """``iterations`` conjugate-gradient steps on op(x) = rhs (op symmetric positive) from x."""
     r = rhs - op(x)
-    p = r
-    rs = jnp.sum(r * r)
 
     def body(_, state):
         x, r, p, rs = state
@@ -92,19 +189,58 @@ def _deblur(blurry, planes, camera, traj, lam, n, iterations):
         p = r + (rs_new / jnp.maximum(rs, 1e-30)) * p
         return x, r, p, rs_new
 
-    x, *_ = jax.lax.fori_loop(0, iterations, body, (x, r, p, rs))
-    return jnp.clip(x, 0.0, 1.0)
+    x, *_ = jax.lax.fori_loop(0, iterations, body, (x, r, r, jnp.sum(r * r)))
+    return x
 
 
-def deblur(blurry, depth, camera: PinholeCamera, trajectory: ExposureTrajectory, config: DeblurConfig = DeblurConfig(),
-           response_gamma: float = 1.0) -> np.ndarray:
+def _solve(blur, adjoint, valid: Bool[Array, "H W"], blurry: Float[Array, "H W"], x0: Float[Array, "H W"], lam,
+           iterations: int):
+    """min ‖A x − b‖² + λ‖∇x‖² over the valid pixels of b (A = ``blur``, linear; Aᵀ = ``adjoint``)
+    by CG on the normal equations from x0; pixels that no valid pixel sees keep the blurry value."""
+    def normal(x):
+        atax = adjoint(jnp.where(valid, blur(x), 0.0))
+        reg = jax.grad(lambda z: 0.5 * sum(jnp.sum(g * g) for g in _grad_ops(z)))(x)
+        return atax + lam * reg
+
+    rhs = adjoint(jnp.where(valid, blurry, 0.0))
+    seen = adjoint(valid.astype(blurry.dtype)) > 1e-6
+    op = lambda x: jnp.where(seen, normal(x), x)
+    return _cg(op, jnp.where(seen, rhs, blurry), jnp.where(seen, x0, blurry), iterations)
+
+
+@partial(jax.jit, static_argnames=("n", "iterations", "rolling"))
+def _deblur_render(blurry, planes, camera, traj, lam, readout, n, iterations, rolling):
+    """The reference solver: A is ``render_blurry`` (every transfer redone at every application)."""
+    readout = readout if rolling else 0.0  # a concrete 0: the global shutter's one-row program
+    blur = lambda x: render_blurry(x, planes, camera, traj, n, readout)[0]
+    adjoint = lambda y: jax.linear_transpose(blur, blurry)(y)[0]
+    valid = render_blurry(jnp.ones_like(blurry), planes, camera, traj, n, readout)[1]
+    return jnp.clip(_solve(blur, adjoint, valid, blurry, blurry, lam, iterations), 0.0, 1.0)
+
+
+@partial(jax.jit, static_argnames=("n", "iterations", "rolling"))
+def _deblur_table(blurry, planes, camera, traj, lam, readout, n, iterations, rolling):
+    """The table solver: A is a :class:`SamplingTable` built once (:func:`table_blur`,
+    :func:`table_blur_adjoint`)."""
+    readout = readout if rolling else 0.0
+    table = sampling_table(planes, camera, traj, n, readout, rolling)
+    blur, adjoint = partial(table_blur, table), partial(table_blur_adjoint, table)
+    return jnp.clip(_solve(blur, adjoint, table.valid, blurry, blurry, lam, iterations), 0.0, 1.0)
+
+
+def deblur(blurry, depth, camera: PinholeCamera, trajectory: ExposurePath, config: DeblurConfig = DeblurConfig(),
+           response_gamma: float = 1.0, readout: float = 0.0) -> np.ndarray:
     """Sharp mid-exposure image of a blurry frame, given its depth (metres, NaN = none) and its
-    exposure path (any reference frame: it is re-expressed about its own mid pose). Works in
-    linear radiance (``response_gamma``) and returns display intensities in [0, 1]."""
-    n = choose_deblur_n(depth, camera, trajectory, config)
+    exposure path (any reference frame: it is re-expressed about its own mid pose; with a rolling
+    shutter of readout fraction ``readout`` the path spans the whole frame time and the image is
+    the global-shutter one at its middle). Works in linear radiance (``response_gamma``) and
+    returns display intensities in [0, 1]. ``config.solver`` picks the operator (module docstring)."""
+    n = choose_deblur_n(depth, camera, trajectory, config, readout)
     planes = plane_depths_from_keyframe(jnp.asarray(np.asarray(depth, np.float32)), camera, Pose.identity())
-    x = _deblur(jnp.asarray(linearize(blurry, response_gamma)), planes, camera, trajectory.about_middle(),
-                jnp.float32(config.regularization), n, config.iterations)
+    huge = blurry.shape[0] * blurry.shape[1] >= TABLE_MAX_PIXELS  # the table's flat indices would not be exact
+    solve = _deblur_render if config.solver == "render" or huge else _deblur_table
+    x = solve(jnp.asarray(linearize(blurry, response_gamma)), planes, camera, trajectory.about_middle(),
+              jnp.float32(config.regularization), jnp.float32(readout), n, config.iterations, readout > 0)
     return delinearize(np.asarray(x), response_gamma)
 
 

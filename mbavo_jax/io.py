@@ -1,4 +1,5 @@
-"""File formats: TUM trajectories (strict 8 columns), exposure paths, camera YAML, depth PNGs.
+"""File formats: TUM trajectories (strict 8 columns), exposure paths (per frame, and per image row
+for a rolling shutter), camera YAML, depth PNGs.
 
 Every reader validates what it reads and raises :class:`~mbavo_jax.errors.DataError` naming the
 file and line; text files are read as UTF-8 through :func:`read_text`. Writers flush per call so an
@@ -7,6 +8,7 @@ interrupted run keeps what it wrote; output folders are made by :func:`prepare_o
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import pathlib
 
@@ -22,7 +24,12 @@ __all__ = [
     "PlyWriter",
     "read_ply",
     "read_exposure_file",
+    "read_exposure_spline_file",
     "write_exposure_file",
+    "ExposureRows",
+    "read_exposure_rows",
+    "write_exposure_rows",
+    "sampled_rows",
     "read_camera_yaml",
     "read_camera",
     "checked_camera",
@@ -255,6 +262,16 @@ def read_exposure_file(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return arr[:, 0], np.concatenate([arr[:, 1:4], q0], 1), np.concatenate([arr[:, 8:11], q1], 1)
 
 
+def read_exposure_spline_file(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read ``timestamp`` + four control poses ``tx ty tz qx qy qz qw`` of cubic exposure paths
+    (29 columns, ``exposure_spline.txt``). Returns (stamps, controls (N, 4, 7)), camera-to-world."""
+    arr, lines = _stamped_rows(path, 29, "exposure spline file", "exposure spline file has no rows")
+    poses = arr[:, 1:].reshape(-1, 4, 7)
+    for j in range(4):
+        check_unit_quaternions(path, poses[:, j, 3:], lines)
+    return arr[:, 0], poses
+
+
 def write_exposure_file(path, stamps, starts, ends) -> None:
     path = pathlib.Path(path)
     with open(path, "w") as fh:
@@ -263,9 +280,66 @@ def write_exposure_file(path, stamps, starts, ends) -> None:
             fh.write(f"{t:.6f} {_fmt_pose(a)} {_fmt_pose(b)}\n")
 
 
+@dataclasses.dataclass(frozen=True)
+class ExposureRows:
+    """Per-row exposure paths of N frames at K sampled image rows each (a rolling shutter):
+    ``rows`` (N, K) row indices, ``starts`` and ``ends`` (N, K, 7) camera-to-world poses at each
+    row's exposure start and end; ``stamps`` (N,) the frames' mid-exposure timestamps."""
+
+    stamps: np.ndarray
+    rows: np.ndarray
+    starts: np.ndarray
+    ends: np.ndarray
+
+
+def sampled_rows(height: int, k: int = 9) -> np.ndarray:
+    """The k image rows (evenly spaced, first and last included) of an exposure rows file."""
+    return np.unique(np.round(np.linspace(0, height - 1, min(k, height))).astype(np.int64))
+
+
+def _frame_groups(path, stamps: np.ndarray, lines) -> list[np.ndarray]:
+    """Indices of the lines of each frame (consecutive equal stamps, frames in increasing time)."""
+    bounds = np.flatnonzero(np.diff(stamps)) + 1
+    groups = np.split(np.arange(len(stamps)), bounds)
+    check_stamps(path, stamps[[g[0] for g in groups]], [lines[g[0]] for g in groups])
+    return groups
+
+
+def read_exposure_rows(path) -> ExposureRows:
+    """Read ``timestamp row`` + start ``tx ty tz qx qy qz qw`` + end ``tx ty tz qx qy qz qw`` (16
+    columns), K lines per frame (its sampled rows, increasing; every frame the same K)."""
+    table = list(read_table(path, 16, "exposure rows file"))
+    if not table:
+        raise DataError(path, "exposure rows file has no rows")
+    lines, arr = [k for k, _ in table], np.asarray([v for _, v in table], np.float64)
+    groups = _frame_groups(path, arr[:, 0], lines)
+    k = len(groups[0])
+    for g in groups:
+        rows = arr[g, 1]
+        if len(g) != k:
+            raise DataError(path, f"frame {format_stamp(arr[g[0], 0])} has {len(g)} rows, the first frame {k}", lines[g[0]])
+        bad = np.flatnonzero((rows != np.round(rows)) | (rows < 0) | (np.diff(rows, prepend=-1) <= 0))
+        if bad.size:
+            raise DataError(path, f"row {arr[g[bad[0]], 1]:g} is not a whole number >= 0 above the frame's previous row", lines[g[bad[0]]])
+    q0 = check_unit_quaternions(path, arr[:, 5:9], lines)
+    q1 = check_unit_quaternions(path, arr[:, 12:16], lines)
+    n = len(groups)
+    pose = lambda t, q: np.concatenate([t, q], 1).reshape(n, k, 7)
+    return ExposureRows(arr[::k, 0], arr[:, 1].astype(np.int64).reshape(n, k), pose(arr[:, 2:5], q0), pose(arr[:, 9:12], q1))
+
+
+def write_exposure_rows(path, rows: ExposureRows) -> None:
+    with open(pathlib.Path(path), "w") as fh:
+        fh.write("# timestamp row start:tx ty tz qx qy qz qw end:tx ty tz qx qy qz qw (camera-to-world at the exposure start "
+                 "and end of image row `row`; each frame's sampled rows)\n")
+        for t, rs, a, b in zip(rows.stamps, rows.rows, rows.starts, rows.ends):
+            fh.writelines(f"{t:.6f} {int(r)} {_fmt_pose(x)} {_fmt_pose(y)}\n" for r, x, y in zip(rs, a, b))
+
+
 CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 CAMERA_RULES = {"fx": "> 0", "fy": "> 0", "width": "> 0", "height": "> 0", "cx": "", "cy": "",
-                "depth_scale": "> 0", "fps": "> 0", "response_gamma": "> 0", "exposure_ms": ">= 0"}  # numeric keys
+                "depth_scale": "> 0", "fps": "> 0", "response_gamma": "> 0", "exposure_ms": ">= 0",
+                "readout_ms": ">= 0"}  # numeric keys
 
 
 def principal_point_problem(cx: float, cy: float, width: int, height: int) -> str:
@@ -315,7 +389,8 @@ def checked_camera(where, fx, fy, cx, cy, width, height, line: int | None = None
 
 def read_camera(path):
     """Camera YAML as (PinholeCamera, its values): ``fx fy cx cy width height`` required; optional
-    ``depth_scale``, ``exposure_ms``, ``fps``, ``response_gamma``, ``depth_sigma`` ([a, b] of the
+    ``depth_scale``, ``exposure_ms``, ``readout_ms`` (rolling shutter: first row's exposure start to
+    the last row's), ``fps``, ``response_gamma``, ``depth_sigma`` ([a, b] of the
     depth noise σ(z) = a + b·(z − 0.4)² m). Every value is checked (numbers, ranges, the camera's
     intrinsics by :func:`checked_camera`); a DataError names the file and the key."""
     path = pathlib.Path(path)

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import FrameIndexError
 from ..geometry.camera import PinholeCamera
-from ..io import check_size
+from ..io import ExposureRows, check_size
 
 __all__ = ["Frame", "Sequence"]
 
@@ -39,6 +39,7 @@ class Sequence:
 
     ``groundtruth``: (stamps (M,), poses (M, 7) [t, q], camera-to-world) or None.
     ``exposure_paths``: (stamps, start (N, 7), end (N, 7)) camera-to-world, or None.
+    ``exposure_rows``: per-row exposure paths of a rolling-shutter sequence (``exposure_rows.txt``), or None.
     """
 
     name: str
@@ -52,6 +53,13 @@ class Sequence:
     has_depth: bool = False
     kind: str = ""
     meta: dict = dataclasses.field(default_factory=dict)  # e.g. camera.yaml extras: response_gamma
+    exposure_rows: ExposureRows | None = None
+
+    @property
+    def readout_s(self) -> float:
+        """Rolling-shutter readout time (s) from the first row's exposure start to the last row's:
+        camera.yaml's ``readout_ms``; 0 (a global shutter) when it records none."""
+        return float(self.meta.get("readout_ms", 0.0)) / 1000.0
 
     def __len__(self) -> int:
         return len(self.timestamps)

@@ -20,6 +20,7 @@ from ..io import (
     read_camera,
     read_depth_png,
     read_exposure_file,
+    read_exposure_rows,
     read_file_list,
     read_image_gray,
     read_table,
@@ -47,8 +48,9 @@ def _first_image_size(path) -> tuple[int, int]:
 def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02, depth: bool = True) -> Sequence:
     """TUM RGB-D layout: ``rgb.txt``, optional ``depth.txt`` (associated within ``max_diff`` s; not
     read when ``depth`` is false),
-    ``groundtruth.txt``, exposure paths (``groundtruth_exposure.txt``, else ``exposure.txt``) and
-    exposure times (``times.txt``, else camera.yaml's ``exposure_ms``); camera from ``camera.yaml``
+    ``groundtruth.txt``, exposure paths (``groundtruth_exposure.txt``, else ``exposure.txt``; per
+    row: ``exposure_rows.txt``) and exposure times (``times.txt``, else camera.yaml's ``exposure_ms``;
+    the rolling-shutter readout: camera.yaml's ``readout_ms``, ``Sequence.readout_s``); camera from ``camera.yaml``
     or the TUM calibration named in ``rgb.txt``'s header / the folder name (freiburg1/2/3)."""
     root = pathlib.Path(path)
     rgb_text = read_text(root / "rgb.txt", "rgb list")
@@ -83,6 +85,7 @@ def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02, 
     gt = read_tum_trajectory(root / "groundtruth.txt") if (root / "groundtruth.txt").is_file() else None
     exp_file = next((root / n for n in ("groundtruth_exposure.txt", "exposure.txt") if (root / n).is_file()), None)
     exp_paths = read_exposure_file(exp_file) if exp_file is not None else None
+    exp_rows = read_exposure_rows(root / "exposure_rows.txt") if (root / "exposure_rows.txt").is_file() else None
 
     def load(i: int) -> Frame:
         img_path = root / names[i]
@@ -95,7 +98,8 @@ def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02, 
         exp = None if exposures is None else float(exposures[i])
         return Frame(i, float(stamps[i]), img, camera, depth, exp, str(img_path))
 
-    return Sequence(root.name, root, camera, stamps, load, exposures, gt, exp_paths, depth_names is not None, "tum", cam_info)
+    return Sequence(root.name, root, camera, stamps, load, exposures, gt, exp_paths, depth_names is not None, "tum", cam_info,
+                    exposure_rows=exp_rows)
 
 
 def _kitti_camera(calib_path, image_path) -> PinholeCamera:
@@ -274,7 +278,8 @@ def open_dso(path, depth: bool = True) -> Sequence:
 
 
 def open_image_folder(path) -> Sequence:
-    """A folder of images plus ``camera.yaml`` (``fx fy cx cy width height``, optional ``fps``)."""
+    """A folder of images plus ``camera.yaml`` (``fx fy cx cy width height``, optional ``fps``; its
+    values in ``Sequence.meta``, e.g. ``readout_ms``)."""
     root = pathlib.Path(path)
     camera, info = read_camera(root / "camera.yaml")
     files = sorted(p for p in root.iterdir() if p.suffix.lower() in IMAGE_EXT)
@@ -286,7 +291,7 @@ def open_image_folder(path) -> Sequence:
     def load(i):
         return Frame(i, float(stamps[i]), read_image_gray(files[i]), camera, None, None, str(files[i]))
 
-    return Sequence(root.name, root, camera, stamps, load, None, None, None, False, "folder")
+    return Sequence(root.name, root, camera, stamps, load, None, None, None, False, "folder", info)
 
 
 DEPTH_KINDS = ("tum", "dso")  # the layouts that can hold depth maps

@@ -1,16 +1,22 @@
-"""APE, RPE, frame drops and exposure-path error (numpy, float64)."""
+"""APE, RPE, frame drops and exposure-path error, per frame and per image row (numpy, float64)."""
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ..errors import MbavoError
-from ..io import CAMERA_KEYS
+from ..geometry.pose import Pose
+from ..geometry.spline import SplineTrajectory
+from ..geometry.trajectory import row_times
+from ..io import CAMERA_KEYS, ExposureRows, sampled_rows
 from .align import umeyama
 from .associate import associate
 from .poses import pose_matrices, slerp
 
-__all__ = ["statistics", "ape", "rpe", "aligned_positions", "frame_drop_rate", "relative_drift", "exposure_path_error", "exposure_path_lengths", "pose_matrices"]
+__all__ = ["statistics", "ape", "rpe", "aligned_positions", "frame_drop_rate", "relative_drift", "exposure_path_error", "exposure_path_lengths",
+           "row_path_error", "row_fractions", "global_shutter_rows", "pose_matrices"]
 
 
 def statistics(errors: np.ndarray) -> dict:
@@ -127,11 +133,19 @@ def _mean_shift(camera: dict, P: np.ndarray, T_mid_a: np.ndarray, T_mid_b: np.nd
     return float(np.mean(np.linalg.norm(shift, axis=1)))
 
 
-def _about_middle(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(T_mid_start, T_mid_end) 4x4 of a path given as camera-to-world vectors (mid: Eqs. 43-44 at ½)."""
-    mid = np.concatenate([(start[:3] + end[:3]) / 2, slerp(start[3:], end[3:], 0.5)])
-    Tm_inv = np.linalg.inv(pose_matrices(mid[None])[0])
-    return Tm_inv @ pose_matrices(start[None])[0], Tm_inv @ pose_matrices(end[None])[0]
+def _along(start: np.ndarray, end: np.ndarray, s) -> np.ndarray:
+    """Poses (M, 7) at fractions ``s`` (M,) of the path start → end (camera-to-world vectors), by
+    Eqs. 43-44 (interpolating world poses equals interpolating them in any reference frame)."""
+    s = np.asarray(s, np.float64).reshape(-1)
+    t = (1 - s)[:, None] * start[:3] + s[:, None] * end[:3]
+    return np.concatenate([t, slerp(np.tile(start[3:], (len(s), 1)), np.tile(end[3:], (len(s), 1)), s)], 1)
+
+
+def _about_middle(start: np.ndarray, end: np.ndarray, poses: np.ndarray | None = None) -> np.ndarray:
+    """T_mid⁻¹ T (4x4 each) of ``poses`` (M, 7; default: start and end), camera-to-world vectors,
+    relative to the mid pose of the path start → end (Eqs. 43-44 at ½)."""
+    Tm_inv = np.linalg.inv(pose_matrices(_along(start, end, [0.5]))[0])
+    return Tm_inv @ pose_matrices(np.stack([start, end]) if poses is None else poses)
 
 
 def exposure_path_lengths(paths, camera: dict, depth: float = 2.0, grid: int = 8) -> np.ndarray:
@@ -140,6 +154,67 @@ def exposure_path_lengths(paths, camera: dict, depth: float = 2.0, grid: int = 8
     P = _grid_points(camera, depth, grid)
     return np.asarray([_mean_shift(camera, P, *_about_middle(np.asarray(start, np.float64), np.asarray(end, np.float64)))
                        for start, end in zip(paths[1], paths[2])])
+
+
+def global_shutter_rows(paths, height: int, rows: int = 9) -> ExposureRows:
+    """Per-row ground truth of a global-shutter sequence from its exposure ``paths`` (stamps, start
+    (N, 7), end (N, 7)): ``rows`` evenly spaced rows, each exposed along the whole path."""
+    stamps, start, end = (np.asarray(a, np.float64) for a in paths)
+    v = sampled_rows(height, rows)
+    rep = lambda a: np.repeat(a[:, None], len(v), 1)
+    return ExposureRows(stamps, np.tile(v, (len(stamps), 1)), rep(start), rep(end))
+
+
+def row_fractions(rows: np.ndarray, height: int, readout: float) -> np.ndarray:
+    """(K, 2) fractions of a frame's path at which rows ``rows`` (K,) start and end their exposure,
+    for readout fraction ρ = ``readout`` (``geometry.trajectory.row_times`` with two virtual frames)."""
+    with jax.enable_x64(True):
+        return np.asarray(row_times(2, jnp.asarray(rows, jnp.float64), height, readout))
+
+
+def _estimate_about_middle(est, i, s: np.ndarray) -> np.ndarray:
+    """T_mid⁻¹ T (4x4 each) at fractions ``s`` of frame i's estimated path. ``est`` is (stamps,
+    start, end) (straight paths: T_mid at ½) or (stamps, controls (N, 4, 7)) (cubic paths,
+    ``exposure_spline.txt``, evaluated by ``geometry.spline`` in float64; T_mid at ½ of the straight
+    path between the poses at min(s) and max(s), as the reference's mid is taken)."""
+    if len(est) == 3:
+        start, end = (np.asarray(a[i], np.float64) for a in (est[1], est[2]))
+        return _about_middle(start, end, _along(start, end, s))
+    with jax.enable_x64(True):
+        spline = SplineTrajectory(jax.vmap(Pose.from_vector)(jnp.asarray(est[1][i], jnp.float64)))
+        at = jnp.asarray(np.concatenate([[np.min(s), np.max(s)], s]), jnp.float64)
+        poses = np.asarray(jax.vmap(lambda u: spline.at(u).to_vector())(at))
+    return _about_middle(poses[0], poses[1], poses[2:])
+
+
+def row_path_error(ref: ExposureRows, est, camera: dict, readout: float = 0.0, depth: float = 2.0, grid: int = 8,
+                   max_diff: float = 0.01) -> dict:
+    """Per-row endpoint error of estimated exposure paths against a rolling shutter's true ones.
+
+    ``ref``: the true start and end poses of sampled rows (``exposure_rows.txt``). ``est``:
+    (stamps, start (N, 7), end (N, 7)), each frame's estimated path over its whole span, or
+    (stamps, controls (N, 4, 7)) for cubic paths (:func:`_estimate_about_middle`); row v of
+    the estimate runs from s = ρ·v/(H-1) to s + 1 − ρ along it (:func:`row_fractions`, ρ =
+    ``readout``, the estimate's model; 0: a global-shutter estimate, every row the whole path).
+    Every pose is taken relative to its frame's mid pose (the reference's: the straight path from
+    the first sampled row's start to the last's end, at ½; the estimate's: its path at ½), and the
+    error of a row's start (end) is the mean reprojection distance of :func:`exposure_path_error`'s
+    point grid. Returns ``reprojection_px`` (statistics over frames, rows, start and end) and
+    ``per_row_px`` (mean per sampled row position)."""
+    i_est, i_ref = associate(est[0], ref.stamps, max_diff)
+    if len(i_est) == 0:
+        raise MbavoError("no overlapping timestamps between the estimated exposure paths and the per-row ground truth")
+    P = _grid_points(camera, depth, grid)
+    errors = []
+    for ie, ir in zip(i_est, i_ref):
+        r_start, r_end = (np.asarray(a[ir], np.float64) for a in (ref.starts, ref.ends))
+        s = row_fractions(ref.rows[ir], int(camera["height"]), readout)
+        R = _about_middle(r_start[0], r_end[-1], np.concatenate([r_start, r_end]))
+        E = _estimate_about_middle(est, ie, np.concatenate([s[:, 0], s[:, 1]]))
+        errors.append([_mean_shift(camera, P, Tr, Te) for Tr, Te in zip(R, E)])
+    errors = np.asarray(errors).reshape(len(i_est), 2, -1)  # (frames, start|end, rows)
+    return {"n_matched": int(len(i_est)), "rows": int(errors.shape[2]), "readout": float(readout),
+            "reprojection_px": statistics(errors.ravel()), "per_row_px": errors.mean(axis=(0, 1)).tolist()}
 
 
 def exposure_path_error(ref, est, camera: dict, depth: float = 2.0, grid: int = 8, max_diff: float = 0.01) -> dict:

@@ -7,7 +7,10 @@ blurred over e·s_a pixels (speed s_a px/s, exposure e s) reblurred by ℓ pixel
 blurred over e·s_b when ℓ² ≈ e²(s_b² − s_a²) (the blur kernels' variances add), so tracking the
 faster frame against the slower one, as it was recorded, gives one sample e = ℓ / √(s_b² − s_a²).
 The estimate is the weighted median of the recent samples (weight: √(s_b² − s_a²) over one frame
-interval, in px), reported as a fraction of the frame interval. ``exposure_mode`` decides whether
+interval, in px), reported as a fraction of the frame interval. With a rolling shutter (readout
+``tracker.readout_s``) the tracked path spans readout plus exposure; ℓ is then the blur of its
+middle row's own exposure (``ExposureTrajectory.middle_row_path`` at ρ = R/(R+guess)), the
+readout's part left out. ``exposure_mode`` decides whether
 a sequence's exposure is known, estimated or taken as zero (``odometry.exposure``).
 """
 
@@ -20,7 +23,7 @@ import numpy as np
 
 from ..config import OdometryConfig, TrackerConfig
 from ..errors import MbavoError
-from ..geometry import ExposureTrajectory, PinholeCamera, Pose
+from ..geometry import ExposureTrajectory, PinholeCamera, Pose, readout_fraction
 from ..tracking import Keyframe, exposure_from_velocity, track
 from .stats import keyframe_stats
 
@@ -80,14 +83,15 @@ def _speed(kf: Keyframe, T_ref_world: Pose, frame: RawFrame) -> float:
 
 def _extra_blur(ref: RawFrame, kf: Keyframe, other: RawFrame, tracker: TrackerConfig, guess_s: float) -> float | None:
     """The blur length (px, on ``kf``'s points) that the raw frame ``ref`` needs to match the raw
-    frame ``other``: ``other`` tracked against it without the prior, from ``guess_s`` exposure at
-    ``other``'s velocity; None when the tracking fails."""
+    frame ``other``: ``other`` tracked against it without the prior, from ``guess_s`` exposure (plus
+    the readout) at ``other``'s velocity; the middle row's blur; None when the tracking fails."""
     T_ref = ref.T_world_mid.inverse()
     mid = T_ref.compose(other.T_world_mid)
-    path = exposure_from_velocity(other.T_world_prev.inverse().compose(other.T_world_mid), other.dt, guess_s)
+    rho = readout_fraction(tracker.readout_s, guess_s)
+    path = exposure_from_velocity(other.T_world_prev.inverse().compose(other.T_world_mid), other.dt, guess_s + tracker.readout_s)
     res = track(kf, other.image, ExposureTrajectory(mid.compose(path.start), mid.compose(path.end)),
-                prior_off(tracker), depth=other.depth)
-    return keyframe_stats(kf, res.trajectory).blur_px if res.status.ok else None
+                prior_off(tracker), depth=other.depth, readout=rho)
+    return keyframe_stats(kf, res.trajectory.middle_row_path(rho)).blur_px if res.status.ok else None
 
 
 def pair_sample(slow: RawFrame, fast: RawFrame, camera: PinholeCamera, tracker: TrackerConfig, guess_s: float,

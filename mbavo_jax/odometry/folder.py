@@ -25,8 +25,8 @@ from ..evaluation.runs import RUN_PLOTS
 
 __all__ = ["RUN_FILES", "clear_run", "sequence_fingerprint", "check_resume", "record_run", "reconcile", "committed_rows"]
 
-RUN_FILES = ("trajectory.txt", "exposure.txt", "keyframes.txt", "frames.csv", "config.yaml", "run.yaml", *RUN_PLOTS)
-TEXT_RECORDS = ("trajectory.txt", "exposure.txt", "keyframes.txt")  # stamped lines, cut back by ``reconcile``
+RUN_FILES = ("trajectory.txt", "exposure.txt", "exposure_spline.txt", "keyframes.txt", "frames.csv", "config.yaml", "run.yaml", *RUN_PLOTS)
+TEXT_RECORDS = ("trajectory.txt", "exposure.txt", "exposure_spline.txt", "keyframes.txt")  # stamped lines, cut back by ``reconcile``
 
 
 def clear_run(out: pathlib.Path) -> None:
@@ -52,9 +52,10 @@ def sequence_fingerprint(seq) -> dict:
 
 
 def _settings_changes(before: dict, after: dict) -> list[str]:
-    """``section.key: old -> new`` for every setting that differs."""
+    """``section.key: old -> new`` for every setting that differs (but the ``runtime`` section's,
+    which change how the process runs, not its results)."""
     return [f"{s}.{k}: {v} -> {after.get(s, {}).get(k)}" for s, values in before.items() for k, v in values.items()
-            if after.get(s, {}).get(k) != v]
+            if s != "runtime" and after.get(s, {}).get(k) != v]
 
 
 def check_resume(out: pathlib.Path, seq, config: RunConfig, force: bool) -> None:

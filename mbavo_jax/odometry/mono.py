@@ -30,7 +30,7 @@ from ..mono.candidates import estimates, ready, select_candidates, trace
 from ..mono.depthmap import filled_depth, project_points, sparse_depth
 from ..mono.init import TwoViewTracker
 from ..mono.window import Window, add_keyframe, add_points, world_points
-from ..tracking import Keyframe, Status, exposure_from_velocity, track
+from ..tracking import Keyframe, Status, track
 from .rgbd import RGBDPipeline
 from .state import Fit, FrameOutcome, KeyframeState, NewKeyframe, RunState
 
@@ -129,11 +129,11 @@ class MonoPipeline(RGBDPipeline):
         sparse[v, u] = 1.0 / np.maximum(two_view.idepth, 1e-6)
         depth = filled_depth(sparse)
         exposure = self.exposure_of(state, frame, state.backend.frame_dt)  # over the frame interval, not the reference's age
-        path = exposure_from_velocity(two_view.T_ref_cur, max(frame.timestamp - stamp, 1e-6), exposure)
+        path, rho = self.velocity_path(two_view.T_ref_cur, frame.timestamp - stamp, exposure)
         if not (cfg.tracker.blur_aware and cfg.odometry.deblur_first_keyframe and np.isfinite(depth).all()
-                and exposure_blur_px(depth, self.camera, path)[0] > cfg.odometry.deblur_min_blur_px):
+                and exposure_blur_px(depth, self.camera, path, readout=rho)[0] > cfg.odometry.deblur_min_blur_px):
             return quantize16(raw)
-        return self.deblurred(raw, depth, path)[0]
+        return self.deblurred(raw, depth, path, rho)[0]
 
     def _start(self, state: RunState, frame, index: int, two_view) -> tuple[RunState, FrameOutcome]:
         """The reference frame (deblurred) as the first keyframe of a new window with the triangulated
@@ -155,7 +155,7 @@ class MonoPipeline(RGBDPipeline):
                               consecutive_drops=0)
         new = NewKeyframe(stamp, mono.origin, image)
         guess = ExposureTrajectory(two_view.T_ref_cur, two_view.T_ref_cur)
-        result = track(kf.keyframe, frame.image, guess, self.tracker_config(frame, False))
+        result = track(kf.keyframe, frame.image, guess, self.tracker_config(frame, False), readout=self.frame_readout(state, frame))
         if not result.status.ok:
             mono = mono.restart(mono.origin)
             state = state.replace(backend=mono, keyframe=None, mids=state.mids[:0], pending=None)

@@ -1,7 +1,7 @@
 """The files of a run, owned by one object: trajectory.txt (mid-exposure, camera-to-world),
-exposure.txt (start and end poses), keyframes.txt, frames.csv (one row per frame), keyframes/
-(keyframe images, 16-bit, for --resume and the benchmarks) and triptych_*.png. Every frame's
-records are written and flushed together."""
+exposure.txt (start and end poses), exposure_spline.txt (a cubic path's control poses),
+keyframes.txt, frames.csv (one row per frame), keyframes/ (keyframe images, 16-bit, for --resume
+and the benchmarks) and triptych_*.png. Every frame's records are written and flushed together."""
 
 from __future__ import annotations
 
@@ -13,17 +13,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..blur import plane_depths_from_keyframe, render_blurry
-from ..geometry import PinholeCamera, Pose
+from ..geometry import PinholeCamera, Pose, SplineTrajectory
 from ..image import delinearize, from_uint16, linearize, to_uint16
 from ..io import PlyWriter, TrajectoryWriter
+from ..runtime import resident_mb
 from .state import ExposureReport, FrameOutcome, Triptych
 
 __all__ = ["RunOutputs", "CSV_COLUMNS", "keyframe_image_path", "read_keyframe_image"]
 
 CSV_COLUMNS = ["index", "timestamp", "status", "rms", "n_finest", "blur_px", "hypothesis", "ms", "keyframe",
                "exposure", "exposure_ms", "exposure_fraction", "sample_s", "sample_weight", "sample_dt_s", "speed_px_s",
-               "jump_px", "note", "backend_ms"]
+               "jump_px", "note", "backend_ms", "rss_mb"]
 EXPOSURE_HEADER = "timestamp start:tx ty tz qx qy qz qw end:tx ty tz qx qy qz qw (camera-to-world)"
+SPLINE_HEADER = "timestamp control poses 0..3 (tx ty tz qx qy qz qw each) of the cubic exposure path (camera-to-world)"
 
 
 def keyframe_image_path(out: pathlib.Path, stamp: float) -> pathlib.Path:
@@ -55,7 +57,8 @@ def _exposure_cells(e: ExposureReport | None) -> list:
 def _csv_row(o: FrameOutcome) -> list:
     """One frames.csv row; the fit (rms, jump_px) is written exactly, for --resume."""
     if o.result is None and o.status == "keyframe":  # the first frame
-        return [o.index, f"{o.timestamp:.6f}", "keyframe", 0.0, 0, 0.0, "", 0.0, 1, *_exposure_cells(o.exposure), "", "", ""]
+        return [o.index, f"{o.timestamp:.6f}", "keyframe", 0.0, 0, 0.0, "", 0.0, 1, *_exposure_cells(o.exposure), "", "", "",
+                f"{resident_mb():.1f}"]
     diag = o.result.diagnostics if o.result is not None else {}
     levels = diag.get("levels") or [{}]
     rms = repr(o.fit.rms) if o.fit is not None else f"{diag.get('rms', float('nan')):.5f}"
@@ -63,7 +66,7 @@ def _csv_row(o: FrameOutcome) -> list:
     return [o.index, f"{o.timestamp:.6f}", o.status, rms, levels[-1].get("n", 0),
             f"{diag.get('blur_px', 0.0):.2f}", diag.get("hypothesis", ""), f"{1000 * o.track_seconds:.1f}", int(o.new_keyframe is not None),
             *_exposure_cells(o.exposure), jump, o.note or diag.get("implausible", ""),
-            f"{1000 * o.backend_seconds:.1f}" if o.backend_seconds else ""]
+            f"{1000 * o.backend_seconds:.1f}" if o.backend_seconds else "", f"{resident_mb():.1f}"]
 
 
 class RunOutputs:
@@ -72,7 +75,7 @@ class RunOutputs:
 
     def __init__(self, out, camera: PinholeCamera, response_gamma: float, append: bool = False):
         self.out, self.camera, self.gamma, self.append = pathlib.Path(out), camera, response_gamma, append
-        self.points = None
+        self.points = self.spline = None
         self.out.mkdir(parents=True, exist_ok=True)
         self.triptychs = len(list(self.out.glob("triptych_*.png")))
         self.trajectory = TrajectoryWriter(self.out / "trajectory.txt", append=append)
@@ -102,10 +105,22 @@ class RunOutputs:
         if o.tracked:
             self.trajectory.write(o.timestamp, _vec(o.T_world_mid))
             self.exposure.write(o.timestamp, _vec(o.T_world_start), _vec(o.T_world_end))
+            self.write_spline(o)
         if new is not None:
             self.keyframes.write(new.stamp, _vec(new.T_world_kf))
         self._csv.writerow(_csv_row(o))
         self._csv_fh.flush()
+
+    def write_spline(self, o: FrameOutcome) -> None:
+        """A cubic path's control poses (camera-to-world) appended to exposure_spline.txt; nothing
+        for a straight path."""
+        traj = o.result.trajectory if o.result is not None else None
+        if not isinstance(traj, SplineTrajectory):
+            return
+        if self.spline is None:
+            self.spline = TrajectoryWriter(self.out / "exposure_spline.txt", SPLINE_HEADER, append=self.append)
+        T_world_ref = o.T_world_start.compose(traj.start.inverse())
+        self.spline.write(o.timestamp, *(_vec(T_world_ref.compose(traj.control(j))) for j in range(4)))
 
     def write_points(self, cloud) -> None:
         """World points (a ``PointCloud``) appended to points.ply."""
@@ -122,14 +137,14 @@ class RunOutputs:
         """Blurry input | our blur model applied to the deblurred image | deblurred image. Pixels the
         model cannot synthesise (no depth, outside) show the input."""
         planes = plane_depths_from_keyframe(jnp.asarray(t.depth), self.camera, Pose.identity())
-        rb, ok = render_blurry(jnp.asarray(linearize(t.sharp, self.gamma)), planes, self.camera, t.path.about_middle(), t.n)
+        rb, ok = render_blurry(jnp.asarray(linearize(t.sharp, self.gamma)), planes, self.camera, t.path.about_middle(), t.n, t.readout)
         rb = np.where(np.asarray(ok), delinearize(np.asarray(rb), self.gamma), t.blurry)
         row = np.concatenate([t.blurry, rb, t.sharp], axis=1)
         cv2.imwrite(str(self.out / f"triptych_{self.triptychs}.png"), np.clip(row * 255, 0, 255).astype(np.uint8))
         self.triptychs += 1
 
     def close(self) -> None:
-        for w in (self.trajectory, self.exposure, self.keyframes, self.points):
+        for w in (self.trajectory, self.exposure, self.keyframes, self.points, self.spline):
             if w is not None:
                 w.close()
         self._csv_fh.close()

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..config import OdometryConfig, RunConfig, TrackerConfig
 from ..deblur import choose_deblur_n, deblur, exposure_blur_px
-from ..geometry import ExposureTrajectory, PinholeCamera, Pose
+from ..geometry import ExposurePath, ExposureTrajectory, PinholeCamera, Pose, readout_fraction
 from ..image import quantize16
 from ..tracking import Keyframe, Status, TrackResult, constant_velocity_guess, exposure_from_velocity, track
 from .exposure import ExposureEstimate, RawFrame, exposure_mode, pair_sample, pick_pair, prior_off
@@ -97,6 +97,20 @@ class RGBDPipeline:
             return frame.exposure if frame.exposure is not None else self.config.odometry.exposure_s
         return self.estimate(state).seconds(frame_dt) if mode == "estimate" else 0.0
 
+    def frame_interval(self, state: RunState, frame) -> float:
+        """The frame interval (s): between the last two tracked frames, else since the last one."""
+        if len(state.mids) >= 2:
+            return max(state.mids[-1][0] - state.mids[-2][0], 1e-6)
+        return max(frame.timestamp - state.mids[-1][0], 1e-6) if state.mids else 0.0
+
+    def readout_of(self, exposure_s: float) -> float:
+        """The readout fraction ρ = R/(R+τ) of a frame exposed ``exposure_s`` (R: ``tracker.readout_s``)."""
+        return readout_fraction(self.config.tracker.readout_s, exposure_s)
+
+    def frame_readout(self, state: RunState, frame) -> float:
+        """This frame's readout fraction ρ, from its exposure time (known or estimated)."""
+        return self.readout_of(self.exposure_of(state, frame, self.frame_interval(state, frame)))
+
     def pending_of(self, frame) -> PendingDeblur | None:
         """What deblurring a keyframe made from ``frame`` without an exposure path needs, or None
         when it will not be deblurred."""
@@ -130,12 +144,14 @@ class RGBDPipeline:
 
     def predict(self, state: RunState, frame) -> tuple[ExposureTrajectory, bool]:
         """The frame's exposure path in the keyframe, by constant velocity from the last two mid
-        poses, or the last pose (no motion) when the velocity is not known; and whether it was known."""
+        poses (over the whole frame time: exposure plus readout), or the last pose (no motion) when
+        the velocity is not known; and whether it was known."""
         T_w_kf = state.keyframe.T_world_kf
         if len(state.mids) >= 2:
             (ta, Ta), (tb, Tb) = state.mids[-2], state.mids[-1]
             dt = max(tb - ta, 1e-6)
-            return constant_velocity_guess(T_w_kf, Ta, Tb, dt, self.exposure_of(state, frame, dt), frame.timestamp - tb), True
+            span = self.exposure_of(state, frame, dt) + self.config.tracker.readout_s
+            return constant_velocity_guess(T_w_kf, Ta, Tb, dt, span, frame.timestamp - tb), True
         last = T_w_kf.inverse().compose(state.mids[-1][1])
         return ExposureTrajectory(last, last), False
 
@@ -143,11 +159,13 @@ class RGBDPipeline:
         replaced, t0, result, fit, stats, informed = (), time.perf_counter(), None, None, None, False
         if frame.depth is None or np.isfinite(frame.depth).any():  # else nothing to place the frame with
             init, informed = self.predict(state, frame)
-            first = track(state.keyframe.keyframe, frame.image, init, self.tracker_config(frame, informed), depth=frame.depth)
+            rho = self.frame_readout(state, frame)
+            first = track(state.keyframe.keyframe, frame.image, init, self.tracker_config(frame, informed), depth=frame.depth,
+                          readout=rho)
             stats = self.frame_stats(state, first, init.middle() if informed else None) if first.status.ok else None
             result, fit = self.checked(state, frame, first, stats, informed)
             if state.pending is not None and result.status.ok:
-                state, result, replaced = self.deblur_pending(state, frame, result)
+                state, result, replaced = self.deblur_pending(state, frame, result, rho)
                 informed = informed or result is not first  # tracked again from a velocity
                 fit = dataclasses.replace(fit, rms=float(result.diagnostics["rms"]))
                 stats = self.frame_stats(state, result, None) if replaced else stats  # the keyframe was replaced
@@ -160,9 +178,11 @@ class RGBDPipeline:
 
     def frame_stats(self, state: RunState, result: TrackResult, predicted: Pose | None) -> PointStats:
         """:class:`PointStats` of a tracking result on the current keyframe: the motion since the last
-        tracked frame and the distance from the ``predicted`` T_kf_mid (None: no prediction)."""
+        tracked frame and the distance from the ``predicted`` T_kf_mid (None: no prediction); its
+        blur is the middle row's (the readout's part of the path left out)."""
         kf = state.keyframe
-        return keyframe_stats(kf.keyframe, result.trajectory, kf.T_world_kf.inverse().compose(state.mids[-1][1]), predicted)
+        path = result.trajectory.middle_row_path(result.diagnostics.get("readout", 0.0))
+        return keyframe_stats(kf.keyframe, path, kf.T_world_kf.inverse().compose(state.mids[-1][1]), predicted)
 
     def checked(self, state: RunState, frame, result: TrackResult, stats: PointStats | None,
                 informed: bool) -> tuple[TrackResult, Fit | None]:
@@ -179,29 +199,37 @@ class RGBDPipeline:
             result = dataclasses.replace(result, status=Status.IMPLAUSIBLE, diagnostics={**result.diagnostics, "implausible": reason})
         return result, fit
 
-    def deblurred(self, image, depth, path: ExposureTrajectory) -> tuple[np.ndarray, int]:
-        """(sharp image as stored, virtual frames used): ``image`` deconvolved along its exposure ``path``."""
-        n = choose_deblur_n(depth, self.camera, path, self.config.deblur)
+    def deblurred(self, image, depth, path: ExposurePath, readout: float = 0.0) -> tuple[np.ndarray, int]:
+        """(sharp image as stored, virtual frames used): ``image`` deconvolved along its exposure
+        ``path`` (readout fraction ``readout``: the path spans the whole frame time)."""
+        n = choose_deblur_n(depth, self.camera, path, self.config.deblur, readout)
         cfg = dataclasses.replace(self.config.deblur, n=n)
-        return quantize16(deblur(image, depth, self.camera, path, cfg, self.config.tracker.response_gamma)), n
+        return quantize16(deblur(image, depth, self.camera, path, cfg, self.config.tracker.response_gamma, readout)), n
 
-    def deblur_pending(self, state: RunState, frame, result: TrackResult):
+    def velocity_path(self, T_ref_cur: Pose, dt: float, exposure: float) -> tuple[ExposureTrajectory, float]:
+        """(exposure path about its middle, readout fraction) of a frame exposed ``exposure`` s when the
+        camera moves by ``T_ref_cur`` every ``dt`` s: the path spans exposure plus readout."""
+        span = exposure + self.config.tracker.readout_s
+        return exposure_from_velocity(T_ref_cur, max(dt, 1e-6), span), self.readout_of(exposure)
+
+    def deblur_pending(self, state: RunState, frame, result: TrackResult, readout: float = 0.0):
         """The waiting keyframe deblurred along the constant-velocity path that this frame's motion
-        gives, and this frame tracked again against it from the same velocity. Returns (state,
-        result, replaced images). A keyframe blurred less than ``deblur_min_blur_px`` stays as it
-        is; when the second tracking fails, the first result is kept (with the deblurred keyframe)."""
+        gives, and this frame (readout fraction ``readout``) tracked again against it from the same
+        velocity. Returns (state, result, replaced images). A keyframe blurred less than
+        ``deblur_min_blur_px`` stays as it is; when the second tracking fails, the first result is
+        kept (with the deblurred keyframe)."""
         kf, pending = state.keyframe, state.pending
         exposure = pending.exposure if pending.exposure is not None else self.estimate(state).seconds(frame.timestamp - kf.stamp)
         state = state.replace(pending=None)
         mid = result.trajectory.middle()  # T_kf_mid of this frame: the motion over frame.timestamp - stamp
-        path = exposure_from_velocity(mid, max(frame.timestamp - kf.stamp, 1e-6), exposure)
-        if exposure_blur_px(pending.depth, self.camera, path)[0] <= self.config.odometry.deblur_min_blur_px:
+        path, rho = self.velocity_path(mid, frame.timestamp - kf.stamp, exposure)
+        if exposure_blur_px(pending.depth, self.camera, path, readout=rho)[0] <= self.config.odometry.deblur_min_blur_px:
             return state, result, ()
-        sharp, _ = self.deblurred(pending.image, pending.depth, path)
+        sharp, _ = self.deblurred(pending.image, pending.depth, path, rho)
         keyframe = self.make_keyframe(state, sharp, pending.depth, kf.T_world_kf)
         state = state.replace(keyframe=dataclasses.replace(kf, keyframe=keyframe))
         init = ExposureTrajectory(mid.compose(path.start), mid.compose(path.end))  # same velocity: T_kf_mid ∘ path
-        again = track(keyframe, frame.image, init, self.tracker_config(frame, True), depth=frame.depth)
+        again = track(keyframe, frame.image, init, self.tracker_config(frame, True), depth=frame.depth, readout=readout)
         return state, (again if again.status.ok else result), ((kf.stamp, sharp),)
 
     def exposure_report(self, state: RunState, frame, sample: tuple[float, float] | None, dt: float,
@@ -241,19 +269,19 @@ class RGBDPipeline:
                               fits=(*state.fits, fit)[-self.config.odometry.reject_window:])
         new = None
         if needs_keyframe(stats, self.camera.width, self.config.odometry) and frame.depth is not None:
-            state, new = self._new_keyframe(state, frame, traj, T_w_mid, stats.blur_px)
+            state, new = self._new_keyframe(state, frame, traj, T_w_mid, stats.blur_px, result.diagnostics.get("readout", 0.0))
         outcome = FrameOutcome(index, frame.timestamp, result.status.name.lower(), T_w_mid, T_w_kf.compose(traj.start),
                                T_w_kf.compose(traj.end), new_keyframe=new, result=result, exposure=report)
         return state, outcome
 
-    def _new_keyframe(self, state: RunState, frame, traj: ExposureTrajectory, T_w_mid: Pose, blur: float):
+    def _new_keyframe(self, state: RunState, frame, traj: ExposurePath, T_w_mid: Pose, blur: float, readout: float = 0.0):
         """This frame as the next keyframe, deblurred along its tracked exposure path ``traj`` (mean
-        blur ``blur`` px) when blurred enough."""
+        blur ``blur`` px, readout fraction ``readout``) when blurred enough."""
         sharp, triptych = quantize16(frame.image), None
         if blur > self.config.odometry.deblur_min_blur_px and self.config.tracker.blur_aware:
-            sharp, n = self.deblurred(frame.image, frame.depth, traj)
+            sharp, n = self.deblurred(frame.image, frame.depth, traj, readout)
             if state.triptychs < self.config.odometry.triptychs:
-                triptych = Triptych(frame.image, sharp, frame.depth, traj, n)
+                triptych = Triptych(frame.image, sharp, frame.depth, traj, n, readout)
                 state = state.replace(triptychs=state.triptychs + 1)
         kf = KeyframeState(self.make_keyframe(state, sharp, frame.depth, T_w_mid), T_w_mid, frame.timestamp)
         state = state.replace(keyframe=kf, keyframes=state.keyframes + 1)

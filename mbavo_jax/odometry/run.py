@@ -9,6 +9,8 @@ from __future__ import annotations
 import dataclasses
 import pathlib
 import sys
+import time
+from typing import Callable
 
 import jax.numpy as jnp
 import numpy as np
@@ -20,6 +22,7 @@ from ..geometry import Pose
 from ..image import quantize16
 from ..io import prepare_out_dir, read_tum_trajectory
 from ..progress import bar
+from ..runtime import compile_counts, enable_compilation_cache
 from ..tracking import Keyframe, Status
 from ..tracking.memory import check_memory
 from .exposure import RawFrame
@@ -142,6 +145,14 @@ def _summary(state: RunState, frames: int, start: RunState, last: FrameOutcome |
     return out
 
 
+def _compilation(before: dict, startup: float | None) -> dict:
+    """The run's start-up: seconds to its first tracked frame (compilation included) and the
+    programs it compiled or loaded from the compilation cache."""
+    now = compile_counts()
+    out = {"compiled": now["compiled"] - before["compiled"], "cache_hits": now["cache_hits"] - before["cache_hits"]}
+    return {**({"startup_s": startup} if startup is not None else {}), **out}
+
+
 def _prepare(out: pathlib.Path, seq, config: RunConfig, resume: bool, resume_anyway: bool, pipeline: Pipeline,
              progress: bool) -> tuple[RunState, int, str]:
     """The run folder made ready, the loop's starting point and what the image size changes in
@@ -162,17 +173,22 @@ def _prepare(out: pathlib.Path, seq, config: RunConfig, resume: bool, resume_any
 
 
 def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False, max_frames: int | None = None,
-                 progress: bool = True, pipeline: Pipeline | None = None, resume_anyway: bool = False) -> dict:
+                 progress: bool = True, pipeline: Pipeline | None = None, resume_anyway: bool = False,
+                 observer: Callable | None = None) -> dict:
     """Track a whole RGB-D sequence into ``out`` and return a summary (frames, tracked, dropped,
     keyframes, frame-drop rate; ``note``: what the image size changed). ``resume``: continue after
     the last committed frame of the run in ``out``, which must have been made on the same sequence
     with the same settings unless ``resume_anyway``. ``pipeline``: the per-frame step (default: the RGB-D pipeline with
-    ``config``; a given pipeline brings its own config)."""
+    ``config``; a given pipeline brings its own config). ``observer``: called as
+    ``observer(frame, state_before, outcome, state_after)`` after each frame's records are written
+    (e.g. ``viewer.RunViewer``)."""
     out = pathlib.Path(out)
     if max_frames is not None and max_frames < 1:
         raise MbavoError(f"--max-frames must be at least 1, got {max_frames}")
     pipeline = pipeline or choose_pipeline(seq, config)
     config = pipeline.config
+    enable_compilation_cache(config.runtime)
+    t_start, counts_start, startup = time.perf_counter(), compile_counts(), None
     if isinstance(pipeline, MonoPipeline) and seq.has_depth:  # monocular: the depth maps are not read
         seq = open_sequence(seq.path, seq.kind, depth=False)
     if resume and isinstance(pipeline, MonoPipeline):
@@ -184,15 +200,20 @@ def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False
             bar(max(n_total - start, 0), "track", progress) as pbar:
         waiting = 0
         for index in range(start, n_total):
-            state, outcome = pipeline.step(state, seq[index], index)
+            frame, before = seq[index], state
+            state, outcome = pipeline.step(state, frame, index)
             outputs.write(outcome)
+            if observer is not None:
+                observer(frame, before, outcome, state)
+            if startup is None and outcome.T_world_mid is not None and index > start:
+                startup = time.perf_counter() - t_start
             waiting += outcome.status == "initialising"
             pbar.set_postfix(status=outcome.note or outcome.status, keyframes=state.keyframes, dropped=state.dropped, refresh=False)
             pbar.update()
         cloud = pipeline.final_points(state) if hasattr(pipeline, "final_points") else None
         if cloud is not None:
             outputs.write_points(cloud)
-    summary = _summary(state, n_total - start, first, outcome)
+    summary = {**_summary(state, n_total - start, first, outcome), **_compilation(counts_start, startup)}
     if isinstance(pipeline, MonoPipeline):
         summary.update(mode="mono", initialising=waiting)
     return {**summary, **({"note": note} if note else {})}

@@ -13,7 +13,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from ..config import RunConfig
-from ..geometry import ExposureTrajectory, Pose
+from ..geometry import ExposurePath, Pose
 from ..tracking import Keyframe, TrackResult
 from .exposure import ExposureEstimate, RawFrame
 
@@ -77,8 +77,9 @@ class Triptych:
     blurry: np.ndarray
     sharp: np.ndarray
     depth: np.ndarray
-    path: ExposureTrajectory  # the frame's exposure path (any reference frame)
+    path: ExposurePath  # the frame's exposure path (any reference frame)
     n: int  # virtual frames the deblurring used
+    readout: float = 0.0  # the frame's rolling-shutter readout fraction (blur.render_blurry's ``readout``)
 
 
 @dataclasses.dataclass(frozen=True)

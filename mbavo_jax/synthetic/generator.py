@@ -17,9 +17,16 @@ depth noise model (``depth_sigma``) the way it records the response γ, so track
 Output folder: ``rgb.txt rgb/ depth.txt depth/ (16-bit, /depth_scale: 5000 unless the scene is
 deeper than 13 m) groundtruth.txt`` (mid-exposure, camera-to-world), ``exposure.txt`` (start and end
 pose), ``times.txt`` (``id timestamp exposure_ms``), ``sharp/`` (mid-exposure sharp image),
-``camera.yaml`` and ``synth.yaml`` (settings and blur stats). Without exposure information
+``camera.yaml`` and ``synth.yaml`` (settings, blur stats, the path bend per frame). Without exposure information
 (``exposure_info=False``, as :func:`.metadata.hide_exposure_info` leaves a folder) there is no
 times.txt nor ``exposure_ms``, and the exposure paths are in ``groundtruth_exposure.txt``.
+
+Rolling shutter (``readout_ms`` R > 0; the time model of :mod:`mbavo_jax.geometry.trajectory`): row
+v is exposed over [t0 + v/(H-1)·R, ... + τ] and rendered at its own times; a frame's exposure path
+(exposure.txt) runs from t0 to t0 + R + τ, its timestamp and groundtruth.txt pose are at the middle
+of that span; camera.yaml records ``readout_ms`` and ``exposure_rows.txt`` the true start and end
+poses of sampled rows (:func:`sampled_rows`). ``shake_deg`` > 0 adds a handheld shake, so that
+exposures span curved paths (``bend_px`` in synth.yaml, :func:`path_bend`).
 """
 
 from __future__ import annotations
@@ -41,21 +48,24 @@ from ..errors import ConfigError, MbavoError
 from ..geometry import quaternion as quat
 from ..geometry.camera import PinholeCamera
 from ..geometry.pose import Pose
-from ..geometry.trajectory import ExposureTrajectory
+from ..geometry.trajectory import ExposureTrajectory, interpolate, readout_fraction
 from ..image import delinearize
-from ..io import prepare_out_dir, write_camera_yaml, write_exposure_file, write_tum_trajectory
+from ..io import (ExposureRows, prepare_out_dir, sampled_rows, write_camera_yaml, write_exposure_file, write_exposure_rows,
+                  write_tum_trajectory)
 from ..progress import bar
-from .metadata import GROUNDTRUTH_EXPOSURE
-from .scene import CAMERA_CENTRE, Scene, make_scene, render_exposure, scene_arrays
+from .metadata import EXPOSURE_ROWS, GROUNDTRUTH_EXPOSURE
+from .scene import CAMERA_CENTRE, Scene, make_scene, render_exposure, render_rolling_exposure, scene_arrays
 
-__all__ = ["SynthConfig", "PRESETS", "generate_sequence", "blur_real_sequence", "camera_path", "mean_blur_length", "sensor_depth",
-           "depth_scale", "DEPTH_SIGMA", "synth_memory_bytes"]
+__all__ = ["SynthConfig", "PRESETS", "generate_sequence", "blur_real_sequence", "camera_path", "mean_blur_length", "path_bend",
+           "sampled_rows", "sub_frame_times", "sensor_depth", "depth_scale", "DEPTH_SIGMA", "synth_memory_bytes"]
 
 
-def camera_path(t, speed: float, rotation_rate: float, seed: int = 0) -> Pose:
+def camera_path(t, speed: float, rotation_rate: float, seed: int = 0, shake_deg: float = 0.0, shake_hz: float = 12.0) -> Pose:
     """``T_world_cam`` at time t (s): a smooth Lissajous path inside the room, looking along +z.
 
-    Peak linear speed ≈ ``speed`` m/s, peak angular rate ≈ ``rotation_rate`` deg/s.
+    Peak linear speed ≈ ``speed`` m/s, peak angular rate ≈ ``rotation_rate`` deg/s. ``shake_deg`` > 0
+    adds a handheld shake: rotations of that amplitude about x and y at ``shake_hz``, a quarter
+    period apart, so the view circles and a path spanning a good part of its period is curved.
     """
     rng = np.random.default_rng(seed + 7)
     ph = rng.uniform(0, 2 * np.pi, size=6)
@@ -77,16 +87,49 @@ def camera_path(t, speed: float, rotation_rate: float, seed: int = 0) -> Pose:
             0.3 * b * jnp.sin(w[5] * t + ph[5]) * w[3] / w[5],
         ]
     )
+    if shake_deg > 0:
+        phase = float(2 * np.pi * shake_hz) * t + float(rng.uniform(0, 2 * np.pi))
+        rot = rot + np.deg2rad(shake_deg) * jnp.stack([jnp.sin(phase), jnp.cos(phase), jnp.zeros_like(phase)])
     return Pose(quat.exp(rot), pos)
 
 
 def _path_poses(times, cfg: SynthConfig) -> Pose:
-    return jax.vmap(lambda t: camera_path(t, cfg.speed, cfg.rotation_rate, cfg.seed))(jnp.asarray(times))
+    """The true poses at ``times`` (any shape): a Pose batched like ``times``."""
+    times = jnp.asarray(times)
+    one = lambda t: camera_path(t, cfg.speed, cfg.rotation_rate, cfg.seed, cfg.shake_deg, cfg.shake_hz)
+    if times.ndim == 1:
+        return jax.vmap(one)(times)
+    flat = jax.vmap(one)(times.ravel())
+    return jax.tree_util.tree_map(lambda a: a.reshape(*times.shape, *a.shape[1:]), flat)
+
+
+def sub_frame_times(n: int) -> np.ndarray:
+    """Fractions of the exposure at which the generator renders n sub-frames: i/(n-1), ½ for n = 1."""
+    return np.linspace(0.0, 1.0, n) if n > 1 else np.full(1, 0.5)
 
 
 def mean_blur_length(depth: np.ndarray, camera: PinholeCamera, poses: Pose, mid: Pose, step: int = 16) -> float:
     """Mean image-path length (px) over a pixel grid of points seen at ``mid`` (with ``depth``)
     moving through the sub-frame ``poses`` (T_world_cam)."""
+    px = _grid_projections(depth, camera, poses, mid, step)
+    return float(np.mean(np.sum(np.linalg.norm(np.diff(px, axis=0), axis=-1), axis=0))) if len(px) > 1 else 0.0
+
+
+def path_bend(depth: np.ndarray, camera: PinholeCamera, poses: Pose, mid: Pose, step: int = 16) -> float:
+    """How curved a path is, in pixels: for ``poses`` (T_world_cam) sampled evenly in time, the
+    largest over samples of the mean distance (over the grid of points seen at ``mid``) between
+    where the true pose and the straight interpolation (Eqs. 43-44) of the first and last pose
+    project them. 0 for a path the linear exposure model follows exactly."""
+    k = poses.t.shape[0]
+    first, last = (jax.tree_util.tree_map(lambda a, i=i: a[i], poses) for i in (0, -1))
+    straight = jax.vmap(lambda s: interpolate(first, last, s))(jnp.linspace(0.0, 1.0, k, dtype=poses.t.dtype))
+    both = _grid_projections(depth, camera, jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), poses, straight), mid, step)
+    return float(np.max(np.mean(np.linalg.norm(both[:k] - both[k:], axis=-1), axis=1))) if k > 1 else 0.0
+
+
+def _grid_projections(depth: np.ndarray, camera: PinholeCamera, poses: Pose, mid: Pose, step: int) -> np.ndarray:
+    """(len(poses), P, 2) image positions (less the principal point) of a pixel grid of points seen
+    at ``mid`` with ``depth``, seen from each of ``poses`` (T_world_cam)."""
     h, w = depth.shape
     v, u = np.mgrid[step // 2 : h : step, step // 2 : w : step]
     z = depth[v, u]
@@ -96,8 +139,7 @@ def mean_blur_length(depth: np.ndarray, camera: PinholeCamera, poses: Pose, mid:
     pts_w = pts_cam @ T_w_mid[:3, :3].T + T_w_mid[:3, 3]
     mats = np.asarray(jax.vmap(lambda p: p.inverse().as_matrix())(poses))  # T_cam_world per sub-frame
     pc = np.einsum("nij,pj->npi", mats[:, :3, :3], pts_w) + mats[:, None, :3, 3]
-    px = np.stack([float(camera.fx) * pc[..., 0] / pc[..., 2], float(camera.fy) * pc[..., 1] / pc[..., 2]], -1)
-    return float(np.mean(np.sum(np.linalg.norm(np.diff(px, axis=0), axis=-1), axis=0))) if len(mats) > 1 else 0.0
+    return np.stack([float(camera.fx) * pc[..., 0] / pc[..., 2], float(camera.fy) * pc[..., 1] / pc[..., 2]], -1)
 
 
 def sensor_depth(depth: np.ndarray, rng: np.random.Generator, sigma=DEPTH_SIGMA["sensor"], correlation_px: float = 2.0,
@@ -176,9 +218,68 @@ def _prepare_out(out) -> pathlib.Path:
     prepare_out_dir(out)
     for sub in ("rgb", "depth", "sharp"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    for name in ("times.txt", "exposure.txt", GROUNDTRUTH_EXPOSURE):  # a previous output's: with or without exposure info
+    for name in ("times.txt", "exposure.txt", GROUNDTRUTH_EXPOSURE, EXPOSURE_ROWS):  # a previous output's
         (out / name).unlink(missing_ok=True)
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class _FrameTruth:
+    """A generated frame's ground truth: the true poses (vectors, T_world_cam) at mid-exposure and
+    at the exposure path's start and end, the sampled rows' start and end poses (K, 7) (rolling
+    shutter only), its mean blur and path bend (px)."""
+
+    mid: np.ndarray
+    start: np.ndarray
+    end: np.ndarray
+    row_starts: np.ndarray | None
+    row_ends: np.ndarray | None
+    blur_px: float
+    bend_px: float
+
+
+@dataclasses.dataclass(frozen=True)
+class _RenderedFrame:
+    """A generated frame's linear radiance (blurry, sharp), mid-exposure depth and ground truth."""
+
+    radiance: jax.Array
+    sharp: jax.Array
+    depth: np.ndarray
+    truth: _FrameTruth
+
+
+def _vec(poses: Pose, i: int) -> np.ndarray:
+    return np.asarray(jax.tree_util.tree_map(lambda a: a[i], poses).to_vector())
+
+
+def _render_frame(cfg: SynthConfig, arrays, camera: PinholeCamera, t_mid: float) -> _RenderedFrame:
+    """Frame at ``t_mid`` (the middle of its exposure span). Global shutter: the mean of
+    ``subframes`` renders spread over the exposure τ. Rolling shutter (R = readout_ms > 0): the span
+    is [t0, t0 + R + τ] about ``t_mid``; row v is exposed over [t0 + v/(H-1)·R, ... + τ] and is the
+    mean of ``subframes`` renders at its own times (``render_rolling_exposure``)."""
+    tau, readout = cfg.exposure_ms / 1000.0, cfg.readout_ms / 1000.0
+    n_sub = max(1, cfg.subframes if tau > 0 else 1)
+    sub_t = t_mid + (np.linspace(-0.5, 0.5, n_sub) if n_sub > 1 else np.zeros(1)) * tau  # the middle row's times
+    poses = _path_poses(sub_t, cfg)
+    mid = camera_path(t_mid, cfg.speed, cfg.rotation_rate, cfg.seed, cfg.shake_deg, cfg.shake_hz)
+    t0, span = t_mid - 0.5 * (readout + tau), readout + tau
+    rows, row_starts, row_ends = sampled_rows(cfg.height), None, None
+    if readout == 0:
+        radiance, sharp_rad, depth = render_exposure(arrays, camera, poses, mid, cfg.response_gamma)
+        start, end = _vec(poses, 0), _vec(poses, -1)
+    else:
+        _, sharp_rad, depth = render_exposure(arrays, camera, jax.tree_util.tree_map(lambda a: a[None], mid), mid, cfg.response_gamma)
+        row_t0 = t0 + readout * np.arange(cfg.height) / max(cfg.height - 1, 1)
+        radiance = render_rolling_exposure(arrays, camera, _path_poses(row_t0[None, :] + tau * sub_frame_times(n_sub)[:, None], cfg),
+                                           cfg.response_gamma)
+        ends_ = _path_poses(np.array([t0, t0 + span]), cfg)
+        start, end = _vec(ends_, 0), _vec(ends_, 1)
+        row_poses = _path_poses(np.stack([row_t0[rows], row_t0[rows] + tau]), cfg)
+        row_starts, row_ends = np.asarray(row_poses.to_vector()[0]), np.asarray(row_poses.to_vector()[1])
+    depth = np.asarray(depth)
+    bend = path_bend(depth, camera, _path_poses(t0 + span * np.linspace(0.0, 1.0, 17), cfg), mid) if span > 0 else 0.0
+    truth = _FrameTruth(np.asarray(mid.to_vector()), start, end, row_starts, row_ends, mean_blur_length(depth, camera, poses, mid), bend)
+    return _RenderedFrame(radiance, sharp_rad, depth, truth)
 
 
 def generate_sequence(cfg: SynthConfig, out, progress: bool = True) -> dict:
@@ -192,40 +293,48 @@ def generate_sequence(cfg: SynthConfig, out, progress: bool = True) -> dict:
     arrays = scene_arrays(scene)
     scale = depth_scale(scene)
     rng = np.random.default_rng(cfg.seed + 1000)
-    tau = cfg.exposure_ms / 1000.0
-    n_sub = max(1, cfg.subframes if tau > 0 else 1)
-    stamps, mids, starts, ends, blur = [], [], [], [], []
+    stamps, frames = [], []
     t0 = time.perf_counter()
     pbar = bar(cfg.frames, "synth", progress)
     for i in range(cfg.frames):
         t_mid = 1.0 + i / cfg.fps  # start at 1 s to keep stamps positive and distinct
-        sub_t = t_mid + (np.linspace(-0.5, 0.5, n_sub) if n_sub > 1 else np.zeros(1)) * tau
-        poses = _path_poses(sub_t, cfg)
-        mid = camera_path(t_mid, cfg.speed, cfg.rotation_rate, cfg.seed)
-        radiance, sharp_rad, depth = render_exposure(arrays, camera, poses, mid, cfg.response_gamma)
-        blurry = delinearize(radiance, cfg.response_gamma)
-        sharp = delinearize(sharp_rad, cfg.response_gamma)
+        fr = _render_frame(cfg, arrays, camera, t_mid)
+        blurry = delinearize(fr.radiance, cfg.response_gamma)
+        sharp = delinearize(fr.sharp, cfg.response_gamma)
         if cfg.noise > 0:
             blurry = blurry + rng.normal(scale=cfg.noise, size=blurry.shape)
         name = f"{t_mid:.6f}.png"
         _write_gray(out / "rgb" / name, blurry)
         _write_gray(out / "sharp" / name, sharp)
-        depth_out = np.asarray(depth) if cfg.depth_model == "exact" else sensor_depth(np.asarray(depth), rng)
+        depth_out = fr.depth if cfg.depth_model == "exact" else sensor_depth(fr.depth, rng)
         _write_depth(out / "depth" / name, depth_out, scale)
-        start = jax.tree_util.tree_map(lambda a: a[0], poses)
-        end = jax.tree_util.tree_map(lambda a: a[-1], poses)
         stamps.append(t_mid)
-        mids.append(np.asarray(mid.to_vector()))
-        starts.append(np.asarray(start.to_vector()))
-        ends.append(np.asarray(end.to_vector()))
-        blur.append(mean_blur_length(np.asarray(depth), camera, poses, mid))
+        frames.append(fr.truth)
         pbar.update()
     pbar.close()
     exposure_ms = cfg.exposure_ms if cfg.exposure_info else None
-    summary = _write_layout(out, camera, cfg.fps, exposure_ms, cfg.response_gamma, stamps, stamps, mids, starts, ends, blur,
-                            DEPTH_SIGMA[cfg.depth_model], scale)
+    summary = _write_layout(out, camera, cfg.fps, exposure_ms, cfg.response_gamma, stamps, stamps, [f.mid for f in frames],
+                            [f.start for f in frames], [f.end for f in frames], [f.blur_px for f in frames],
+                            DEPTH_SIGMA[cfg.depth_model], scale, cfg.readout_ms)
+    if cfg.readout_ms > 0:
+        _write_rows(out, stamps, frames, cfg.height)
+    summary.update(_timing_summary(cfg.exposure_ms, cfg.readout_ms, [f.bend_px for f in frames]))
     summary.update(source=f"synthetic {cfg.scene}", config=dataclasses.asdict(cfg), textures=list(scene.texture_names))
     return _finish(out, summary, t0, cfg.exposure_info)
+
+
+def _write_rows(out, stamps, truths: list[_FrameTruth], height: int) -> None:
+    """exposure_rows.txt: each frame's sampled rows (:func:`sampled_rows`) with their true start and end poses."""
+    rows = np.tile(sampled_rows(height), (len(truths), 1))
+    write_exposure_rows(out / EXPOSURE_ROWS, ExposureRows(np.asarray(stamps, np.float64), rows, np.stack([f.row_starts for f in truths]),
+                                                          np.stack([f.row_ends for f in truths])))
+
+
+def _timing_summary(exposure_ms: float, readout_ms: float, bend_px) -> dict:
+    """synth.yaml's exposure and readout times and the path bend (:func:`path_bend`) per frame."""
+    bend = np.asarray(bend_px, np.float64)
+    return {"exposure_ms": float(exposure_ms), "readout_ms": float(readout_ms), "mean_bend_px": round(float(bend.mean()), 3),
+            "max_bend_px": round(float(bend.max()), 3), "bend_px": [round(float(b), 3) for b in bend]}
 
 
 def _finish(out, summary: dict, t0: float, exposure_info: bool) -> dict:
@@ -236,11 +345,11 @@ def _finish(out, summary: dict, t0: float, exposure_info: bool) -> dict:
 
 
 def _write_layout(out, camera, fps, exposure_ms, gamma, stamps, gt_stamps, mids, starts, ends, blur, depth_sigma,
-                  scale=5000.0) -> dict:
+                  scale=5000.0, readout_ms: float = 0.0) -> dict:
     """Write the lists, trajectories and camera; ``gt_stamps`` are the frames with ground truth;
     depth images hold ``scale`` units per metre. ``exposure_ms`` None: no exposure information (no
     times.txt nor camera.yaml ``exposure_ms``; the exposure paths as ground truth only, in
-    groundtruth_exposure.txt)."""
+    groundtruth_exposure.txt). camera.yaml records ``readout_ms`` when it is > 0."""
     names = [f"{t:.6f}.png" for t in stamps]
     with open(out / "rgb.txt", "w") as fh:
         fh.write("# blurry images (mbavo synth)\n# timestamp filename\n")
@@ -255,6 +364,7 @@ def _write_layout(out, camera, fps, exposure_ms, gamma, stamps, gt_stamps, mids,
     write_tum_trajectory(out / "groundtruth.txt", gt_stamps, mids, "timestamp tx ty tz qx qy qz qw (mid-exposure, camera-to-world)")
     write_exposure_file(out / ("exposure.txt" if exposure_ms is not None else GROUNDTRUTH_EXPOSURE), gt_stamps, starts, ends)
     exposure = {} if exposure_ms is None else {"exposure_ms": float(exposure_ms)}
+    exposure.update({"readout_ms": float(readout_ms)} if readout_ms > 0 else {})
     write_camera_yaml(out / "camera.yaml", **camera.as_dict(), depth_scale=float(scale), **exposure, fps=float(fps),
                       response_gamma=float(gamma), depth_sigma=[float(x) for x in depth_sigma])
     blur = np.asarray(blur)
@@ -304,16 +414,44 @@ def _blur_path(direction: np.ndarray, depth: np.ndarray, cam, blur_px: float) ->
     return _symmetric_path(delta).trajectory
 
 
-def _check_blur_arguments(blur_px: float, n: int, seed: int, noise: float) -> None:
+REAL_FPS, REAL_EXPOSURE_MS = 30.0, 1000.0 / 30.0 * 0.5  # what blur_real_sequence records for a real clip
+
+
+def _check_blur_arguments(blur_px: float, n: int, seed: int, noise: float, readout_ms: float) -> None:
     """ConfigError naming the first argument of :func:`blur_real_sequence` out of its (finite) range."""
     for name, value, check in (("blur_px", blur_px, NONNEG), ("subframes", n, AT_LEAST_1), ("seed", seed, NONNEG),
-                               ("noise", noise, NONNEG)):
+                               ("noise", noise, NONNEG), ("readout_ms", readout_ms, NONNEG)):
         if not (FINITE.ok(value) and check.ok(value)):
             raise ConfigError(f"{name}: must be {check.text}, got {value:g}")
+    if readout_ms > 1000.0 / REAL_FPS:
+        raise ConfigError(f"readout_ms: must not exceed the frame interval ({1000.0 / REAL_FPS:.3g} ms), got {readout_ms:g}")
+
+
+def _blur_real_frame(image: np.ndarray, depth: np.ndarray, cam: PinholeCamera, traj: ExposureTrajectory, n: int,
+                     rho: float) -> np.ndarray:
+    """``image`` blurred along ``traj`` (about its own pose) by the core model, each row at its own
+    times for readout fraction ``rho``; pixels the model cannot synthesise (no depth, outside the
+    image) keep the sharp value."""
+    img = jnp.asarray(image)
+    planes = plane_depths_from_keyframe(jnp.asarray(depth), cam, traj.middle())
+    blurry, valid = render_blurry(img, planes, cam, traj, n, readout=rho) if rho > 0 else render_blurry(img, planes, cam, traj, n)
+    return np.where(np.asarray(valid), np.asarray(blurry), np.asarray(img))
+
+
+def _real_truth(T_w: Pose, traj: ExposureTrajectory, rho: float, depth: np.ndarray, cam: PinholeCamera) -> _FrameTruth:
+    """The ground truth of a frame blurred along ``traj`` about its true pose ``T_w``: the path's
+    start and end, the sampled rows' (:meth:`ExposureTrajectory.row_path`; rolling shutter only) and
+    the middle row's blur (the path is straight: no bend)."""
+    vec = lambda T: np.asarray(T_w.compose(T).to_vector())
+    rows = [traj.row_path(v, cam.height, rho) for v in sampled_rows(cam.height)] if rho > 0 else []
+    sub = jax.vmap(lambda s: T_w.compose(traj.middle_row_path(rho).at(s)))(jnp.linspace(0.0, 1.0, 16))
+    return _FrameTruth(np.asarray(T_w.to_vector()), vec(traj.start), vec(traj.end),
+                       np.stack([vec(r.start) for r in rows]) if rows else None, np.stack([vec(r.end) for r in rows]) if rows else None,
+                       mean_blur_length(depth, cam, sub, T_w), 0.0)
 
 
 def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int = 0, noise: float = 0.0, progress: bool = True,
-                       exposure_info: bool = True) -> dict:
+                       exposure_info: bool = True, readout_ms: float = 0.0) -> dict:
     """Blur a real RGB-D sequence along known exposure paths with the core blur model.
 
     For frame k the exposure path is symmetric about the frame's own pose: T_k_start = exp(−δ/2),
@@ -321,16 +459,19 @@ def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int =
     clip's). δ follows the real motion direction between neighbouring ground-truth poses (a seeded
     random direction where there is none), scaled so the mean blur is ``blur_px`` pixels.
     ``exposure_info=False``: no exposure time written (the exposure paths in groundtruth_exposure.txt).
+    ``readout_ms`` > 0: a rolling shutter; the path spans the frame's readout and exposure, each row
+    is blurred along its own part of it (``blur_px`` is a row's blur) and exposure_rows.txt is written.
     """
     from ..evaluation.associate import interpolate_poses
 
     if not seq.has_depth:
         raise MbavoError(f"{seq.path}: --from needs a sequence with depth")
-    _check_blur_arguments(blur_px, n, seed, noise)
+    _check_blur_arguments(blur_px, n, seed, noise, readout_ms)
     out = _prepare_out(out)
     cam = seq.camera
+    rho = readout_fraction(readout_ms / 1000.0, REAL_EXPOSURE_MS / 1000.0)
     rng = np.random.default_rng(seed)
-    stamps, gt_stamps, mids, starts, ends, blur = [], [], [], [], [], []
+    stamps, truths = [], []
     gt_poses = None
     if seq.groundtruth is not None:
         gt_poses = interpolate_poses(seq.groundtruth[0], seq.groundtruth[1], seq.timestamps)
@@ -340,12 +481,8 @@ def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int =
         fr = seq[i]
         direction = _blur_direction(gt_poses, i, rng)
         depth = np.where(np.isfinite(fr.depth), fr.depth, np.nan).astype(np.float32)
-        traj = _blur_path(direction, depth, cam, blur_px)
-        img = jnp.asarray(fr.image)
-        planes = plane_depths_from_keyframe(jnp.asarray(depth), cam, traj.middle())
-        blurry, valid = render_blurry(img, planes, cam, traj, n)
-        # pixels the model cannot synthesise (no depth, outside the keyframe) keep the sharp value
-        blurry = np.where(np.asarray(valid), np.asarray(blurry), np.asarray(img))
+        traj = _blur_path(direction, depth, cam, blur_px / (1.0 - rho))
+        blurry = _blur_real_frame(fr.image, depth, cam, traj, n, rho)
         if noise > 0:
             blurry = blurry + rng.normal(scale=noise, size=blurry.shape)
         name = f"{fr.timestamp:.6f}.png"
@@ -355,17 +492,24 @@ def blur_real_sequence(seq, out, blur_px: float = 20.0, n: int = 64, seed: int =
         known = gt_poses is not None and np.all(np.isfinite(gt_poses[i]))
         T_w = Pose.from_vector(jnp.asarray(gt_poses[i], jnp.float32)) if known else Pose.identity()
         stamps.append(fr.timestamp)
-        if known:  # frames without ground truth get none in groundtruth.txt / exposure.txt
-            gt_stamps.append(fr.timestamp)
-            mids.append(np.asarray(T_w.to_vector()))
-            starts.append(np.asarray(T_w.compose(traj.start).to_vector()))
-            ends.append(np.asarray(T_w.compose(traj.end).to_vector()))
-        sub = jax.vmap(lambda s: T_w.compose(traj.at(s)))(jnp.linspace(0.0, 1.0, 16))
-        blur.append(mean_blur_length(depth, cam, sub, T_w))
+        truths.append((fr.timestamp, _real_truth(T_w, traj, rho, depth, cam), known))
         pbar.update()
     pbar.close()
-    exposure_ms = 1000.0 / 30.0 * 0.5 if exposure_info else None
-    summary = _write_layout(out, cam, 30.0, exposure_ms, 1.0, stamps, gt_stamps, mids, starts, ends, blur,
-                            seq.meta.get("depth_sigma", DEPTH_SIGMA["sensor"]))  # real RGB-D: Kinect-class unless the source says
+    summary = _write_real_truth(out, cam, stamps, truths, exposure_info, readout_ms, seq.meta)
     summary.update(source=f"blurred real clip {seq.path}", blur_px_requested=blur_px, n=n, seed=seed)
     return _finish(out, summary, t0, exposure_info)
+
+
+def _write_real_truth(out, cam: PinholeCamera, stamps, truths, exposure_info: bool, readout_ms: float, meta: dict) -> dict:
+    """The layout of a blurred real clip: ``truths`` (stamp, _FrameTruth, whether the clip has a
+    pose there); frames without one get no ground truth (groundtruth.txt, exposure.txt, rows)."""
+    gt = [(t, f) for t, f, known in truths if known]
+    exposure_ms = REAL_EXPOSURE_MS if exposure_info else None
+    depth_sigma = meta.get("depth_sigma", DEPTH_SIGMA["sensor"])  # real RGB-D: Kinect-class unless the source says
+    summary = _write_layout(out, cam, REAL_FPS, exposure_ms, 1.0, stamps, [t for t, _ in gt], [f.mid for _, f in gt],
+                            [f.start for _, f in gt], [f.end for _, f in gt], [f.blur_px for _, f, _ in truths], depth_sigma,
+                            readout_ms=readout_ms)
+    if readout_ms > 0 and gt:
+        _write_rows(out, [t for t, _ in gt], [f for _, f in gt], cam.height)
+    summary.update(exposure_ms=REAL_EXPOSURE_MS, readout_ms=float(readout_ms))
+    return summary

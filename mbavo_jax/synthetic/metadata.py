@@ -3,6 +3,8 @@
 ``hide_exposure_info`` strips the exposure time from a written sequence folder (camera.yaml's
 ``exposure_ms``, times.txt) and keeps the ground-truth exposure paths only for evaluation, as
 ``groundtruth_exposure.txt`` (``open_tum`` still reads them into ``Sequence.exposure_paths``).
+camera.yaml's ``readout_ms`` (a rolling shutter's readout time, a property of the sensor, not of the
+exposure) and the per-row ground truth ``exposure_rows.txt`` are kept.
 ``exposure_hidden_copy`` does the same to a cheap copy, so one set of images can be run with and
 without the metadata.
 """
@@ -17,9 +19,10 @@ import yaml
 from ..errors import MbavoError
 from ..io import read_text
 
-__all__ = ["hide_exposure_info", "exposure_hidden_copy", "GROUNDTRUTH_EXPOSURE"]
+__all__ = ["hide_exposure_info", "exposure_hidden_copy", "GROUNDTRUTH_EXPOSURE", "EXPOSURE_ROWS"]
 
 GROUNDTRUTH_EXPOSURE = "groundtruth_exposure.txt"
+EXPOSURE_ROWS = "exposure_rows.txt"  # per-row exposure paths of a rolling-shutter sequence: ground truth, kept as is
 
 
 def _drop_yaml_key(path: pathlib.Path, key: str, record: dict | None = None) -> None:

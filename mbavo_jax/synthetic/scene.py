@@ -3,7 +3,8 @@ plus boxes in it (``make_scene``: room, cluttered, deep, distant).
 
 Rendering returns linear radiance and z-depth for a camera pose ``T_world_cam``; it is jit-compiled
 and renders many sub-frame poses in one call (``render_exposure``), averaging radiance over the
-exposure before the camera response is applied.
+exposure before the camera response is applied. ``render_rolling_exposure`` does the same with a
+pose per image row (a rolling shutter: each row at its own times).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from ..image import bilinear_wrapped
 
 __all__ = [
     "Scene", "SCENES", "CAMERA_REGION", "make_textures", "make_scene", "default_scene", "cluttered_scene", "deep_scene",
-    "distant_scene", "texels_per_metre", "scene_arrays", "render_exposure",
+    "distant_scene", "texels_per_metre", "scene_arrays", "render_exposure", "render_rolling_exposure",
 ]
 
 TEXTURE_SIZE = 512
@@ -280,14 +281,23 @@ def scene_arrays(scene: Scene):
     )
 
 
-def _render_core(arrays, camera: PinholeCamera, T_world_cam: Pose, gamma):
-    boxes, inside, tex_idx, tpm, textures = arrays
+def _rays(camera: PinholeCamera, T_world_cam: Pose):
+    """World ray directions (h, w, 3), with camera z = 1, and origins (3,) or, for a pose per image
+    row (a Pose batched over the h rows: a rolling shutter), (h, 1, 3)."""
     h, w = camera.height, camera.width
     u, v = jnp.meshgrid(jnp.arange(w, dtype=jnp.float32), jnp.arange(h, dtype=jnp.float32))
     d_cam = jnp.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, jnp.ones_like(u)], -1)
-    R = T_world_cam.rotation()
-    d = d_cam @ R.T  # (h, w, 3); camera z of the hit equals the ray parameter t
-    o = T_world_cam.t
+    if T_world_cam.t.ndim == 1:
+        return d_cam @ T_world_cam.rotation().T, T_world_cam.t
+    R = jax.vmap(lambda T: T.rotation())(T_world_cam)  # (h, 3, 3)
+    return jnp.einsum("vuj,vij->vui", d_cam, R), T_world_cam.t[:, None, :]
+
+
+def _render_core(arrays, camera: PinholeCamera, T_world_cam: Pose, gamma):
+    """Linear radiance and depth (h, w) seen from ``T_world_cam``: one pose, or one per image row."""
+    boxes, inside, tex_idx, tpm, textures = arrays
+    h, w = camera.height, camera.width
+    d, o = _rays(camera, T_world_cam)  # camera z of the hit equals the ray parameter t
     d_safe = jnp.where(jnp.abs(d) < 1e-9, 1e-9, d)
     inv = 1.0 / d_safe
 
@@ -343,4 +353,20 @@ def render_exposure(arrays, camera: PinholeCamera, poses: Pose, mid: Pose, gamma
     total, _ = jax.lax.scan(step, jnp.zeros((h, w), jnp.float32), poses)
     sharp, depth = _render_core(arrays, camera, mid, gamma)
     return total / poses.t.shape[0], sharp, depth
+
+
+@jax.jit
+def render_rolling_exposure(arrays, camera: PinholeCamera, row_poses: Pose, gamma=2.2) -> jax.Array:
+    """Mean linear radiance (h, w) of a rolling-shutter exposure: ``row_poses`` is a Pose batched
+    (S, h), sub-frame k of row v at ``row_poses[k, v]``; each row is the mean of its S renders.
+    Scans over the S sub-frames (each a whole image, every row at its own pose), so memory stays
+    O(H·W) and the cost is that of S global-shutter renders."""
+    h, w = camera.height, camera.width
+
+    def step(acc, T):
+        rad, _ = _render_core(arrays, camera, T, gamma)
+        return acc + rad, None
+
+    total, _ = jax.lax.scan(step, jnp.zeros((h, w), jnp.float32), row_poses)
+    return total / row_poses.t.shape[0]
 

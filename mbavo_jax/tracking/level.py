@@ -21,7 +21,8 @@ from jaxtyping import Array, Bool, Float
 
 from ..geometry import quaternion as quat
 from ..geometry.camera import PinholeCamera
-from ..geometry.trajectory import ExposureTrajectory
+from ..geometry.spline import ExposurePath
+from ..geometry.trajectory import ExposureTrajectory, RowClock
 from ..masked import count, masked_mean
 from .geometric import depth_residuals
 from .points import PATTERN
@@ -41,7 +42,8 @@ def compiled_programs() -> int:
 
 class LevelInputs(eqx.Module):
     """What one level's solve reads: the keyframe level, its points, the current frame, the anchor
-    (y = 0 is this exposure path) and the affine brightness carried over from the coarser level."""
+    (y = 0 is this exposure path), the affine brightness carried over from the coarser level and
+    the frame's row clock (rolling shutter; used when the settings say ``rolling``)."""
 
     ref_image: Float[Array, "H W"]
     camera: PinholeCamera
@@ -49,8 +51,9 @@ class LevelInputs(eqx.Module):
     pixels: Float[Array, "N 2"]
     depths: Float[Array, " N"]
     valid: Bool[Array, " N"]
-    anchor: ExposureTrajectory
+    anchor: ExposurePath
     affine_ab: Float[Array, "2"]
+    clock: RowClock
 
 
 class LevelSettings(eqx.Module):
@@ -66,26 +69,29 @@ class LevelSettings(eqx.Module):
     rigid: bool = eqx.field(static=True)
     affine: bool = eqx.field(static=True)
     use_outliers: bool = eqx.field(static=True)
+    rolling: bool = eqx.field(static=True, default=False)  # per-row virtual poses (readout fraction > 0)
 
 
 class Parametrization(eqx.Module):
     """The solver's unknowns z → y = [Δstart (6), Δend (6), a, b]: 12 blur-aware unknowns or 6 rigid
-    ones (start = end), plus 2 affine ones when estimated (added to the coarser level's a, b)."""
+    ones (start = end), plus 2 affine ones when estimated (added to the coarser level's a, b). A
+    cubic path (``dof`` 24) has a local update of each of its four control poses instead."""
 
     affine_ab: Float[Array, "2"]
     rigid: bool = eqx.field(static=True)
     affine: bool = eqx.field(static=True)
+    dof: int = eqx.field(static=True, default=12)  # the path's unknowns (the anchor's ``dof``)
 
     @property
     def motion_size(self) -> int:
-        return 6 if self.rigid else 12
+        return 6 if self.rigid else self.dof
 
     def size(self) -> int:
         return self.motion_size + (2 if self.affine else 0)
 
-    def expand(self, z: Float[Array, " m"]) -> Float[Array, "14"]:
+    def expand(self, z: Float[Array, " m"]) -> Float[Array, " Y"]:
         m = self.motion_size
-        y12 = jnp.concatenate([z[:6], z[:6]]) if self.rigid else z[:12]
+        y12 = jnp.concatenate([z[:6], z[:6]]) if self.rigid else z[:m]
         ab = z[m : m + 2] if self.affine else jnp.zeros(2, z.dtype)
         return jnp.concatenate([y12, self.affine_ab + ab])
 
@@ -127,7 +133,7 @@ class LevelResult(eqx.Module):
     """A level's outcome: the exposure path and affine (a, b) it found, the RMS photometric error
     after and before, its contrast-normalised RMS, the valid residuals, convergence and LM steps."""
 
-    trajectory: ExposureTrajectory
+    trajectory: ExposurePath
     affine_ab: Float[Array, "2"]
     rms: Float[Array, ""]
     rms_init: Float[Array, ""]
@@ -137,15 +143,16 @@ class LevelResult(eqx.Module):
     steps: Array
 
 
-def exposure_motion(traj: ExposureTrajectory) -> Float[Array, "6"]:
+def exposure_motion(traj: ExposurePath) -> Float[Array, "6"]:
     """b = [log(q) (3), t (3)] of start⁻¹·end: the camera's motion during the exposure."""
     rel = traj.start.inverse().compose(traj.end)
     return jnp.concatenate([quat.log(rel.q), rel.t])
 
 
-def residual_pixels(camera: PinholeCamera, cur_image, pixels, depths, valid, anchor: ExposureTrajectory):
-    """(rays, plane depths, observed intensities, mask) of the residual pixels: each keyframe point
-    projected into the current frame with the anchor's middle pose, rounded, plus the 8-pixel pattern."""
+def residual_pixels(camera: PinholeCamera, cur_image, pixels, depths, valid, anchor: ExposurePath):
+    """(rays, plane depths, observed intensities, mask, rows) of the residual pixels: each keyframe
+    point projected into the current frame with the anchor's middle pose, rounded, plus the 8-pixel
+    pattern; ``rows`` is each pixel's image row (its rolling-shutter bucket)."""
     mid = anchor.middle().inverse()  # T_cur_ref at mid-exposure
     P = jax.vmap(camera.backproject)(pixels, depths)
     x_cur = jax.vmap(lambda p: camera.project(mid.apply(p)))(P)
@@ -158,7 +165,7 @@ def residual_pixels(camera: PinholeCamera, cur_image, pixels, depths, valid, anc
     col = jnp.clip(res[:, 0], 0, w - 1).astype(jnp.int32)
     row = jnp.clip(res[:, 1], 0, h - 1).astype(jnp.int32)
     rays = jax.vmap(camera.unit_ray)(res)
-    return rays, jnp.repeat(depths, PATTERN.shape[0]), cur_image[row, col], mask
+    return rays, jnp.repeat(depths, PATTERN.shape[0]), cur_image[row, col], mask, row
 
 
 def reject_outlier_patches(problem: LevelProblem, y0, k) -> LevelProblem:
@@ -182,14 +189,14 @@ def photometric_residuals(y, problem: LevelProblem, huber) -> Float[Array, " R"]
     return robust(_RESIDUAL(y, problem), huber)
 
 
-def depth_residuals_block(traj: ExposureTrajectory, camera: PinholeCamera, term: DepthTerm) -> Float[Array, " M"]:
+def depth_residuals_block(traj: ExposurePath, camera: PinholeCamera, term: DepthTerm) -> Float[Array, " M"]:
     """The depth term at the path's middle pose, weighted and square-rooted Huber."""
     r, _ = depth_residuals(traj.middle(), camera, term.cur_depth, term.pixels, term.depths, term.valid, term.edge,
                            (term.sigma[0], term.sigma[1]), term.outlier)
     return term.weight * robust(r, term.huber)
 
 
-def exposure_prior_residuals(traj: ExposureTrajectory, prior: ExposurePrior) -> Float[Array, "6"]:
+def exposure_prior_residuals(traj: ExposurePath, prior: ExposurePrior) -> Float[Array, "6"]:
     """The exposure-motion prior's six residuals."""
     return prior.weight * prior.scale * (exposure_motion(traj) - prior.blur0)
 
@@ -197,7 +204,7 @@ def exposure_prior_residuals(traj: ExposureTrajectory, prior: ExposurePrior) -> 
 def objective(z, obj: LevelObjective):
     """The level's least-squares function: the residual blocks stacked."""
     y = obj.param.expand(z)
-    traj = obj.problem.anchor.plus(y[:12])
+    traj = obj.problem.anchor.plus(y[: obj.param.dof])
     parts = [photometric_residuals(y, obj.problem, obj.huber)]
     if obj.depth is not None:
         parts.append(depth_residuals_block(traj, obj.problem.camera, obj.depth))
@@ -234,9 +241,11 @@ def solve_level(level: LevelInputs, settings: LevelSettings, prior: tuple | None
     """One level's LM solve (optimistix, RMS termination norm, QR). ``prior``: None (rigid) or
     (b₀, σ_I, min_rad, rel) of :func:`make_prior`."""
     _TRACES["solve_level"] += 1  # runs once per compiled signature
-    rays, d, observed, mask = residual_pixels(level.camera, level.cur_image, level.pixels, level.depths, level.valid, level.anchor)
-    problem = LevelProblem(level.ref_image, level.camera, level.anchor, rays, d, observed, mask, settings.n, settings.jacobian)
-    param = Parametrization(level.affine_ab, settings.rigid, settings.affine)
+    rays, d, observed, mask, rows = residual_pixels(level.camera, level.cur_image, level.pixels, level.depths, level.valid, level.anchor)
+    times = level.clock.times(jnp.arange(level.cur_image.shape[0], dtype=d.dtype), settings.n) if settings.rolling else None
+    problem = LevelProblem(level.ref_image, level.camera, level.anchor, rays, d, observed, mask, settings.n, settings.jacobian,
+                           times, rows if settings.rolling else None)
+    param = Parametrization(level.affine_ab, settings.rigid, settings.affine, level.anchor.dof)
     z0 = jnp.zeros(param.size(), level.ref_image.dtype)
     if settings.use_outliers:
         problem = reject_outlier_patches(problem, param.expand(z0), settings.outlier_sigma)
@@ -246,6 +255,7 @@ def solve_level(level: LevelInputs, settings: LevelSettings, prior: tuple | None
     sol = optx.least_squares(objective, solver, z0, args=obj, max_steps=settings.max_steps, throw=False)
     y = param.expand(sol.value)
     rms, rms0, nrms, nvalid = _summary(problem, y, param.expand(z0))
-    traj = level.anchor.plus(y[:12]).normalized()
+    k = param.dof
+    traj = level.anchor.plus(y[:k]).normalized()
     converged = sol.result == optx.RESULTS.successful
-    return LevelResult(traj, y[12:14], rms, rms0, nrms, nvalid, converged, sol.stats["num_steps"])
+    return LevelResult(traj, y[k : k + 2], rms, rms0, nrms, nvalid, converged, sol.stats["num_steps"])

@@ -7,7 +7,10 @@ import numpy as np
 
 from ..geometry import quaternion as quat
 from ..geometry.pose import Pose
+from ..geometry.spline import SplineTrajectory
 from ..geometry.trajectory import ExposureTrajectory
+
+Path = ExposureTrajectory | SplineTrajectory
 
 __all__ = ["pose_power", "exposure_from_velocity", "constant_velocity_guess", "motion_hypotheses"]
 
@@ -41,16 +44,15 @@ def constant_velocity_guess(
     return ExposureTrajectory(ref_inv.compose(start), ref_inv.compose(end))
 
 
-def motion_hypotheses(init: ExposureTrajectory, rotation_deg: float = 2.0) -> list[tuple[str, ExposureTrajectory]]:
+def motion_hypotheses(init: Path, rotation_deg: float = 2.0) -> list[tuple[str, Path]]:
     """DSO-style alternatives to the guess ``init``, named. Each moves its mid-exposure pose M — to
     the identity (zero motion), M^½ (half), M² (double) and M turned by ±``rotation_deg`` about each
-    axis — and keeps the guess's blur (start and end about M as in ``init``)."""
+    axis — and keeps the guess's blur (the path about M as in ``init``; straight or cubic)."""
     mid = init.middle()
-    to_start = mid.inverse().compose(init.start)
-    to_end = mid.inverse().compose(init.end)
+    about_mid = init.about_middle()
 
     def around(m: Pose):
-        return ExposureTrajectory(m.compose(to_start), m.compose(to_end))
+        return about_mid.seen_from(m)
 
     out = [("zero motion", around(Pose.identity())), ("half motion", around(pose_power(mid, 0.5))),
            ("double motion", around(pose_power(mid, 2.0)))]

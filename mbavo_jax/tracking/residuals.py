@@ -9,10 +9,16 @@ The 12 trajectory unknowns enter only through the n virtual poses, so the Jacobi
 
     ∂r/∂y = e^a / n · Σ_i  g_i(x) · M_i,   g_i = ∂v_i/∂(p_i, q̄_i)  (1 x 7),   M_i = ∂(p_i, q̄_i)/∂y  (7 x 12)
 
-where M_i is shared by all pixels. Two paths compute g_i and M_i: ``autodiff`` (``jax.jacfwd`` of the
+where M_i is shared by all pixels under a global shutter. With a rolling shutter the virtual poses
+are a table over row buckets b (one per image row) and M becomes M_{b,i} = ∂(p, q̄)_{b,i}/∂y, with
+∂r/∂y = e^a / n · Σ_i g_i(x) · M_{b(x),i}. Two paths compute g_i and M_i: ``autodiff`` (``jax.jacfwd`` of the
 per-sample function and of the trajectory) and ``analytic`` (the supplement's corrected formulas:
 Eqs. 85, 78-84, 56-58, 48-49, 3-11). The residual function carries a ``custom_jvp`` that returns
 J @ ẏ, so ``jax.linearize`` inside optimistix computes J once per step.
+
+A cubic exposure path (``geometry.spline.SplineTrajectory``) has k = 24 unknowns instead of 12
+(y = [Δ (k), a, b]); its M has no closed form here and is always ``jax.jacfwd`` of the pose table,
+with g_i still from the chosen path.
 """
 
 from __future__ import annotations
@@ -20,11 +26,12 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
-from ..blur import synthesize, virtual_pq, virtual_sample
+from ..blur import per_pixel_poses, synthesize, virtual_pq, virtual_pq_table, virtual_sample
 from ..geometry import quaternion as quat
 from ..geometry.camera import PinholeCamera
+from ..geometry.spline import SplineTrajectory
 from ..geometry.trajectory import ExposureTrajectory, virtual_times
 from ..paper import jacobians as pj
 
@@ -36,13 +43,15 @@ class LevelProblem(eqx.Module):
 
     ref_image: Float[Array, "H W"]
     camera: PinholeCamera
-    anchor: ExposureTrajectory  # y = 0 corresponds to this trajectory
+    anchor: ExposureTrajectory | SplineTrajectory  # y = 0 corresponds to this trajectory
     rays: Float[Array, "R 3"]  # unit rays π⁻¹(x) of the residual pixels (Eq. 62)
     depths: Float[Array, "R"]  # plane depth d of each residual pixel
     observed: Float[Array, "R"]  # B(x), the blurry frame at the residual pixels
     mask: Bool[Array, "R"]
     n: int = eqx.field(static=True)
     jacobian: str = eqx.field(static=True)  # "autodiff" | "analytic"
+    times: Float[Array, "B n"] | None = None  # rolling shutter: s(v, i) per row bucket (None: global shutter)
+    rows: Int[Array, "R"] | None = None  # the row bucket of each residual pixel (with ``times``)
 
 
 def _sample(problem: LevelProblem, pq, ray, d):
@@ -50,24 +59,47 @@ def _sample(problem: LevelProblem, pq, ray, d):
     return virtual_sample(problem.ref_image, problem.camera, pq, ray, d)
 
 
-def _trajectory(problem: LevelProblem, y12) -> ExposureTrajectory:
+def _trajectory(problem: LevelProblem, y12):
     return problem.anchor.plus(y12)
 
 
-def _M_autodiff(problem: LevelProblem, y12, s):
-    """M_i = ∂(p_i, q̄_i)/∂y by forward-mode autodiff of the virtual poses (n x 7 x 12)."""
-    return jax.jacfwd(lambda yy: virtual_pq(_trajectory(problem, yy), s.shape[0]))(y12)
+def _times(problem: LevelProblem, dtype) -> Float[Array, "B n"]:
+    """The virtual frames' normalised times per row bucket (one bucket: the global shutter)."""
+    return virtual_times(problem.n, dtype)[None] if problem.times is None else problem.times
 
 
-def _M_analytic(problem: LevelProblem, y12, s):
-    """M_i from the supplement (``paper.jacobians.virtual_pose_jacobian``: Eqs. 48-49, 56-58
-    corrected), with the derivative of the update q' = q̄_anchor ⊗ exp(Δr) at the current Δr
-    (Eqs. 36-37 and 3-11 corrected)."""
+def _rows(problem: LevelProblem) -> Int[Array, " R"]:
+    return jnp.zeros(problem.depths.shape[0], jnp.int32) if problem.rows is None else problem.rows
+
+
+def _pose_table(problem: LevelProblem, y12) -> Float[Array, "B n 7"]:
+    """The virtual poses [p, q̄] per row bucket and virtual frame at y."""
+    traj = _trajectory(problem, y12)
+    return virtual_pq(traj, problem.n)[None] if problem.times is None else virtual_pq_table(traj, problem.times)
+
+
+def _M_autodiff(problem: LevelProblem, y12):
+    """M_{b,i} = ∂(p, q̄)_{b,i}/∂y by forward-mode autodiff of the pose table (B x n x 7 x 12)."""
+    return jax.jacfwd(lambda yy: _pose_table(problem, yy))(y12)
+
+
+def _M_analytic(problem: LevelProblem, y12):
+    """M_{b,i} from the supplement (``paper.jacobians.virtual_pose_jacobian``: Eqs. 48-49, 56-58
+    corrected) at each bucket's times, with the derivative of the update q' = q̄_anchor ⊗ exp(Δr)
+    at the current Δr (Eqs. 36-37 and 3-11 corrected)."""
     a = problem.anchor
     traj = _trajectory(problem, y12)
     dq_start = quat.Q(a.start.q) @ pj.exp_jacobian(y12[0:3])  # 4 x 3
     dq_end = quat.Q(a.end.q) @ pj.exp_jacobian(y12[6:9])
-    return jax.vmap(lambda si: pj.virtual_pose_jacobian(traj.start.q, traj.end.q, si, dq_start, dq_end))(s)
+    one = lambda si: pj.virtual_pose_jacobian(traj.start.q, traj.end.q, si, dq_start, dq_end)
+    return jax.vmap(jax.vmap(one))(_times(problem, y12.dtype))
+
+
+def chain_rows(G: Float[Array, "n R 7"], M: Float[Array, "B n 7 k"], rows: Int[Array, " R"]) -> Float[Array, "R k"]:
+    """Σ_i g_i(x) · M_{b(x),i} for every residual x (one bucket: a single contraction)."""
+    if M.shape[0] == 1:
+        return jnp.einsum("nrj,njk->rk", G, M[0])
+    return jax.vmap(lambda g, b: jnp.einsum("nj,njk->k", g, M[b]), in_axes=(1, 0))(G, rows)
 
 
 def _g_autodiff(problem: LevelProblem, pq, ray, d):
@@ -84,28 +116,27 @@ def _g_analytic(problem: LevelProblem, pq, ray, d):
     return jnp.where(valid, grad @ dproj @ dp, 0.0)
 
 
-def residuals_and_jacobian(y: Float[Array, "14"], problem: LevelProblem, with_jacobian: bool = True):
-    """Residuals r (R,) at y = [Δstart (6), Δend (6), a, b] and, optionally, J = ∂r/∂y (R, 14).
+def residuals_and_jacobian(y: Float[Array, " Y"], problem: LevelProblem, with_jacobian: bool = True):
+    """Residuals r (R,) at y = [Δstart (6), Δend (6), a, b] (a spline: [Δcontrols (24), a, b]) and,
+    optionally, J = ∂r/∂y (R, k + 2).
 
     Invalid residuals (a sample outside the keyframe, a ray missing the plane, masked pixels) are 0
     with zero Jacobian rows. Also returns the per-residual validity.
     """
-    y12, a, b = y[:12], y[12], y[13]
-    s = virtual_times(problem.n, y.dtype)
-    pqs = virtual_pq(_trajectory(problem, y12), problem.n)  # (n, 7)
-    synth, ok = synthesize(problem.ref_image, problem.camera, pqs, problem.rays, problem.depths)
+    k = problem.anchor.dof
+    yk, a, b = y[:k], y[k], y[k + 1]
+    pqs, rows = _pose_table(problem, yk), _rows(problem)  # (B, n, 7), (R,)
+    synth, ok = synthesize(problem.ref_image, problem.camera, pqs, problem.rays, problem.depths, rows)
     valid = problem.mask & ok
     gain = jnp.exp(a)
     r = jnp.where(valid, gain * synth + b - problem.observed, 0.0)
     if not with_jacobian:
         return r, None, valid
-    if problem.jacobian == "analytic":
-        G = jax.vmap(lambda pq: jax.vmap(lambda ray, d: _g_analytic(problem, pq, ray, d))(problem.rays, problem.depths))(pqs)
-        M = _M_analytic(problem, y12, s)
-    else:
-        G = jax.vmap(lambda pq: jax.vmap(lambda ray, d: _g_autodiff(problem, pq, ray, d))(problem.rays, problem.depths))(pqs)
-        M = _M_autodiff(problem, y12, s)
-    J12 = (gain / problem.n) * jnp.einsum("nrj,njk->rk", G, M)
+    analytic = problem.jacobian == "analytic"
+    g = _g_analytic if analytic else _g_autodiff
+    G = per_pixel_poses(lambda pq, ray, d: g(problem, pq, ray, d), pqs, rows, problem.rays, problem.depths)  # (n, R, 7)
+    M = _M_analytic(problem, yk) if analytic and isinstance(problem.anchor, ExposureTrajectory) else _M_autodiff(problem, yk)
+    J12 = (gain / problem.n) * chain_rows(G, M, rows)
     J = jnp.concatenate([J12, (gain * synth)[:, None], jnp.ones_like(synth)[:, None]], axis=1)
     J = jnp.where(valid[:, None], J, 0.0)
     return r, J, valid

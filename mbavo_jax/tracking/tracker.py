@@ -3,8 +3,9 @@
 ``track(keyframe, frame, init)`` estimates the exposure trajectory (``T_ref_start``, ``T_ref_end``) of a
 blurry frame relative to a sharp keyframe with known depth. Each pyramid level is one jit-compiled
 ``optx.least_squares`` solve with ``optx.LevenbergMarquardt`` over y = [Δstart, Δend, a, b]
-(``a, b``: affine brightness, e^a · I + b); shapes are fixed per level so a sequence compiles once
-per (level, n). When the first solve is poor, DSO-style motion hypotheses (zero, half, double motion,
+(``a, b``: affine brightness, e^a · I + b; with ``trajectory: cubic`` the path is a cumulative
+cubic B-spline, ``geometry.spline``, and Δstart, Δend become its four control poses' updates);
+shapes are fixed per level so a sequence compiles once per (level, n). When the first solve is poor, DSO-style motion hypotheses (zero, half, double motion,
 small rotations) are tried. The status never raises.
 """
 
@@ -24,7 +25,8 @@ from ..config import TrackerConfig
 from ..errors import ArgumentError
 from ..geometry.camera import PinholeCamera
 from ..geometry.pose import Pose
-from ..geometry.trajectory import ExposureTrajectory
+from ..geometry.spline import ExposurePath, as_trajectory
+from ..geometry.trajectory import ExposureTrajectory, RowClock
 from ..image import linearize, pyramid
 from ..masked import masked_mean
 from .geometric import select_depth_points
@@ -104,7 +106,7 @@ class TrackResult:
     RMS photometric error, valid residuals; the hypothesis used; affine (a, b); predicted blur; time).
     Unpacks as a tuple: ``traj, status, diag = track(...)``."""
 
-    trajectory: ExposureTrajectory
+    trajectory: ExposurePath
     status: Status
     diagnostics: dict
 
@@ -163,12 +165,19 @@ def _n_for_level(config: TrackerConfig, blur0: float, level: int) -> int:
 
 
 @functools.lru_cache(maxsize=256)
-def _level_settings(config: TrackerConfig, level: int, n: int) -> LevelSettings:
-    """A level's solver settings, built (and copied to the device) once per config, level and n."""
+def _level_settings(config: TrackerConfig, level: int, n: int, rolling: bool = False) -> LevelSettings:
+    """A level's solver settings, built (and copied to the device) once per config, level, n and
+    shutter model (``rolling``: per-row virtual poses)."""
     f = lambda v: jnp.float32(v)
     return LevelSettings(f(config.huber), f(config.outlier_sigma), f(config.rtol), f(config.atol), n=n, jacobian=config.jacobian,
                          max_steps=config.max_steps[level], rigid=not config.blur_aware, affine=config.affine,
-                         use_outliers=level < config.levels - 1 and config.outlier_sigma > 0)
+                         use_outliers=level < config.levels - 1 and config.outlier_sigma > 0, rolling=rolling)
+
+
+@functools.lru_cache(maxsize=256)
+def _row_clock(readout: float, height: int, level: int) -> RowClock:
+    """A level's row clock (readout fraction ρ, full-resolution height), on the device once."""
+    return RowClock.create(readout, height, level)
 
 
 def _depth_term(keyframe: Keyframe, depth_pyr, level: int, config: TrackerConfig) -> DepthTerm | None:
@@ -198,10 +207,13 @@ def _level_report(level: int, n: int, res, depth_term: bool) -> dict:
                 converged=bool(res.converged), steps=int(res.steps), depth_term=depth_term)
 
 
-def _coarse_to_fine(keyframe: Keyframe, pyr, init: ExposureTrajectory, config: TrackerConfig, blur0: float, depth_pyr=None):
+def _coarse_to_fine(keyframe: Keyframe, pyr, init: ExposurePath, config: TrackerConfig, blur0: float, depth_pyr=None,
+                    readout: float = 0.0):
     """Solve every level, coarse to fine, each from the previous level's result: (path, affine,
-    per-level reports). Stops early at a non-finite level."""
+    per-level reports). ``readout``: the frame's readout fraction ρ (0: global shutter). Stops
+    early at a non-finite level."""
     traj, ab, per_level = init, jnp.zeros(2, jnp.float32), []
+    rolling = config.blur_aware and readout > 0
     prior = None
     if config.blur_aware:  # the prior pulls the exposure motion towards the initial guess's
         prior = (exposure_motion(init), *_prior_scales(config))
@@ -210,8 +222,9 @@ def _coarse_to_fine(keyframe: Keyframe, pyr, init: ExposureTrajectory, config: T
     for level in reversed(range(config.levels)):
         n = _n_for_level(config, blur0, level)
         depth = _depth_term(keyframe, depth_pyr, level, config)
-        inputs = LevelInputs(keyframe.images[level], keyframe.cameras[level], pyr[level], *keyframe.points[level].on_device, traj, ab)
-        res = solve_level(inputs, _level_settings(config, level, n), prior, depth)
+        inputs = LevelInputs(keyframe.images[level], keyframe.cameras[level], pyr[level], *keyframe.points[level].on_device, traj, ab,
+                             _row_clock(float(readout), keyframe.cameras[0].height, level))
+        res = solve_level(inputs, _level_settings(config, level, n, rolling), prior, depth)
         per_level.append(_level_report(level, n, res, depth is not None))
         if not np.isfinite(per_level[-1]["rms"]):
             return res.trajectory, res.affine_ab, per_level
@@ -237,7 +250,7 @@ class _Attempt:
     """One coarse-to-fine solve from one initial guess."""
 
     name: str
-    trajectory: ExposureTrajectory
+    trajectory: ExposurePath
     affine_ab: jax.Array
     per_level: list
     status: Status
@@ -248,13 +261,13 @@ class _Attempt:
         return self.per_level[-1]["nrms"] if self.status.ok else float("inf")
 
 
-def _attempt(name, keyframe, pyr, init, config, depth_pyr, blur0=None) -> _Attempt:
-    blur0 = predicted_blur_px(keyframe, init) if blur0 is None else blur0
-    traj, ab, per_level = _coarse_to_fine(keyframe, pyr, init, config, blur0, depth_pyr)
+def _attempt(name, keyframe, pyr, init, config, depth_pyr, blur0=None, readout: float = 0.0) -> _Attempt:
+    blur0 = predicted_blur_px(keyframe, init.middle_row_path(readout)) if blur0 is None else blur0
+    traj, ab, per_level = _coarse_to_fine(keyframe, pyr, init, config, blur0, depth_pyr, readout)
     return _Attempt(name, traj, ab, per_level, _status(per_level, config))
 
 
-def _search(first: _Attempt, keyframe, pyr, init, config: TrackerConfig, depth_pyr) -> tuple[_Attempt, int]:
+def _search(first: _Attempt, keyframe, pyr, init, config: TrackerConfig, depth_pyr, readout: float = 0.0) -> tuple[_Attempt, int]:
     """DSO-style: when the first solve is poor, try the motion hypotheses until one is good; the
     best usable attempt wins. Returns it and the number of attempts."""
     if not config.hypotheses or (first.status.ok and first.per_level[-1]["nrms"] <= config.good_nrms):
@@ -262,7 +275,7 @@ def _search(first: _Attempt, keyframe, pyr, init, config: TrackerConfig, depth_p
     best, tried = first, 1
     for name, hyp in motion_hypotheses(init, config.hypothesis_rotation_deg):
         tried += 1
-        a = _attempt(name, keyframe, pyr, hyp, config, depth_pyr)
+        a = _attempt(name, keyframe, pyr, hyp, config, depth_pyr, readout=readout)
         if a.score < best.score:
             best = a
         if a.status.ok and a.score <= config.good_nrms:
@@ -288,9 +301,14 @@ def _frame_image(frame, camera: PinholeCamera) -> np.ndarray:
     return image if np.all(np.isfinite(image)) else np.nan_to_num(image, nan=0.0, posinf=1.0, neginf=0.0)
 
 
-def track(keyframe: Keyframe, frame, init: ExposureTrajectory | None = None, config: TrackerConfig = TrackerConfig(), depth=None):
+def track(keyframe: Keyframe, frame, init: ExposurePath | None = None, config: TrackerConfig = TrackerConfig(), depth=None,
+          readout: float = 0.0):
     """Estimate the exposure trajectory of ``frame`` (a blurry image, float [0, 1], the keyframe's
     size) relative to ``keyframe``, from ``init`` (e.g. constant velocity; identity when None).
+    ``readout``: the frame's readout fraction ρ = R/(R+τ) (``geometry.readout_fraction``; 0 = global
+    shutter); with ρ > 0 the path spans the whole frame time, first row's start to last row's end.
+    With ``config.trajectory`` cubic a straight ``init`` becomes a spline on the same path
+    (``geometry.spline``) and the result is a :class:`~mbavo_jax.geometry.SplineTrajectory`.
 
     ``depth``: the frame's own depth map (metres; NaN or 0 = missing), used only when
     ``config.depth_weight > 0`` (``tracking.geometric``). Returns :class:`TrackResult`
@@ -300,6 +318,7 @@ def track(keyframe: Keyframe, frame, init: ExposureTrajectory | None = None, con
     image = _frame_image(frame, keyframe.cameras[0])
     config = config.for_image(*image.shape)
     init = ExposureTrajectory(Pose.identity(), Pose.identity()) if init is None else init
+    init = as_trajectory(init, config.trajectory) if config.blur_aware else init
     if float(np.std(image)) < config.min_image_std or keyframe.n_points(0) < config.min_keyframe_points:
         return _refuse(keyframe, init, t0)
     pyr = pyramid(linearize(image, config.response_gamma), config.levels)
@@ -308,10 +327,11 @@ def track(keyframe: Keyframe, frame, init: ExposureTrajectory | None = None, con
         if np.shape(depth) != image.shape:
             raise ValueError(f"frame depth shape {np.shape(depth)} differs from image shape {image.shape}")
         depth_pyr = _depth_pyramid(depth, config.levels)
-    blur0 = predicted_blur_px(keyframe, init)
-    best, tried = _search(_attempt("initial guess", keyframe, pyr, init, config, depth_pyr, blur0), keyframe, pyr, init, config, depth_pyr)
+    blur0 = predicted_blur_px(keyframe, init.middle_row_path(readout))
+    first = _attempt("initial guess", keyframe, pyr, init, config, depth_pyr, blur0, readout)
+    best, tried = _search(first, keyframe, pyr, init, config, depth_pyr, readout)
     fine = best.per_level[-1]
     diagnostics = dict(points=keyframe.n_points(0), hypothesis=best.name, levels=best.per_level, rms=fine["rms"], nrms=fine["nrms"],
                        affine=[float(best.affine_ab[0]), float(best.affine_ab[1])], depth_term=depth_pyr is not None, blur_px=blur0,
-                       hypotheses_tried=tried, seconds=time.perf_counter() - t0)
+                       hypotheses_tried=tried, readout=float(readout), seconds=time.perf_counter() - t0)
     return TrackResult(best.trajectory, best.status, diagnostics)

@@ -1,0 +1,95 @@
+"""How a process runs JAX: the persistent compilation cache and a count of what was compiled.
+
+With the cache on (``runtime.compilation_cache``, the default), every program XLA compiles is kept in
+a user cache folder, so a second run with the same settings and image size loads its programs
+instead of compiling them. :func:`compile_counts` tells how many programs came from the cache and
+how many were compiled since the process started.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import resource
+import sys
+
+import jax
+from jax import monitoring
+from jax.experimental.compilation_cache import compilation_cache
+
+from .config import RuntimeConfig
+
+__all__ = ["cache_folder", "enable_compilation_cache", "compile_counts", "resident_mb"]
+
+_COUNTS = {"programs": 0, "cache_hits": 0, "compile_seconds": 0.0}
+
+
+def _on_event(event: str, **_) -> None:
+    if event == "/jax/compilation_cache/cache_hits":
+        _COUNTS["cache_hits"] += 1
+
+
+def _on_duration(event: str, seconds: float, **_) -> None:
+    if event == "/jax/core/compile/backend_compile_duration":  # one per program: compiled or loaded from the cache
+        _COUNTS["programs"] += 1
+        _COUNTS["compile_seconds"] += seconds
+
+
+monitoring.register_event_listener(_on_event)
+monitoring.register_event_duration_secs_listener(_on_duration)
+
+
+def cache_folder(config: RuntimeConfig = RuntimeConfig()) -> pathlib.Path:
+    """The compilation cache's folder: ``runtime.cache_dir``, else ``$XDG_CACHE_HOME/mbavo_jax/jax``
+    (``~/.cache/mbavo_jax/jax`` when XDG_CACHE_HOME is not set)."""
+    if config.cache_dir:
+        return pathlib.Path(config.cache_dir).expanduser()
+    root = os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache"
+    return pathlib.Path(root) / "mbavo_jax" / "jax"
+
+
+def enable_compilation_cache(config: RuntimeConfig = RuntimeConfig()) -> pathlib.Path | None:
+    """Turn JAX's persistent compilation cache on in ``cache_folder(config)`` (every program, however
+    quick to compile) or off, for the rest of this process; returns the folder, None when off or
+    when the folder cannot be made (then one note on stderr and the run goes on without it)."""
+    if not config.compilation_cache:
+        _set_dir(None)
+        return None
+    folder = cache_folder(config)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"mbavo: note: no compilation cache ({folder}: {exc.strerror or exc}); compiling as usual", file=sys.stderr)
+        _set_dir(None)
+        return None
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    _set_dir(str(folder))
+    return folder
+
+
+def _set_dir(path: str | None) -> None:
+    """Point the cache at ``path`` (None: off); JAX decides once per process whether the cache is
+    used, so a change resets that decision."""
+    if jax.config.jax_compilation_cache_dir == path and jax.config.jax_enable_compilation_cache == (path is not None):
+        return
+    jax.config.update("jax_enable_compilation_cache", path is not None)
+    jax.config.update("jax_compilation_cache_dir", path)
+    compilation_cache.reset_cache()
+
+
+def compile_counts() -> dict:
+    """What this process has compiled so far: ``programs`` (XLA executables it needed),
+    ``cache_hits`` (of those, loaded from the compilation cache), ``compiled`` (the rest) and
+    ``compile_seconds`` (time spent compiling or loading them)."""
+    return {**_COUNTS, "compiled": _COUNTS["programs"] - _COUNTS["cache_hits"]}
+
+
+def resident_mb() -> float:
+    """The process's resident memory now, in MiB (Linux ``/proc/self/statm``; elsewhere its peak)."""
+    try:
+        pages = int(pathlib.Path("/proc/self/statm").read_text().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
+        return peak / (2**20 if sys.platform == "darwin" else 2**10)

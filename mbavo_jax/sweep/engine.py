@@ -1,0 +1,124 @@
+"""Where a sweep's runs execute: a local process pool (spawn: JAX and fork do not mix) or Ray
+tasks. Both call the same function on the same items through :func:`call_limited`, and yield
+``(index, result)`` as results come in. On a Ray cluster every node needs mbavo_jax installed and
+sees the sweep's folders at the same paths (a shared filesystem). JAX-free.
+"""
+
+from __future__ import annotations
+
+import collections
+import os
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any, Callable, Iterator
+
+from ..config import SweepConfig
+from ..errors import MbavoError
+
+__all__ = ["map_unordered", "worker_env", "call_limited", "MAX_TRIES"]
+
+MAX_TRIES = 2  # a run whose worker process died is tried again once, in a fresh pool
+
+
+def threads_per_run(settings: SweepConfig) -> int:
+    """``settings.threads``, else this machine's cores shared by the local jobs (1 on Ray)."""
+    if settings.threads:
+        return settings.threads
+    return 1 if settings.engine == "ray" else max(1, (os.cpu_count() or 1) // settings.jobs)
+
+
+def worker_env(threads: int) -> dict[str, str]:
+    """Environment that holds a worker to ``threads`` threads: OpenMP/BLAS pools and XLA's CPU
+    intra-op pool (single-threaded Eigen when 1)."""
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if "intra_op_parallelism" not in f and "multi_thread_eigen" not in f]
+    flags.append(f"--xla_cpu_multi_thread_eigen={'false' if threads == 1 else 'true'}")
+    flags.append(f"intra_op_parallelism_threads={threads}")
+    return {"OMP_NUM_THREADS": str(threads), "OPENBLAS_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
+            "XLA_FLAGS": " ".join(flags)}
+
+
+def call_limited(fn: Callable, env: dict[str, str], item) -> Any:
+    """``fn(item)`` in a worker, after ``env`` is set (before the worker's first JAX call)."""
+    os.environ.update(env)
+    try:
+        import cv2
+
+        cv2.setNumThreads(int(env["OMP_NUM_THREADS"]))
+    except ImportError:  # pragma: no cover - cv2 is a dependency
+        pass
+    return fn(item)
+
+
+def _local(fn, items: list, jobs: int, env: dict, fallback) -> Iterator[tuple[int, Any]]:
+    """At most ``jobs`` items in flight on a spawn process pool; a pool broken by a dying worker
+    is replaced and its in-flight items queued again (at the end), up to MAX_TRIES each."""
+    import multiprocessing
+
+    queue, tries = collections.deque(enumerate(items)), collections.Counter()
+    while queue:
+        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            running, broken = {}, False
+            while running or (queue and not broken):
+                while queue and not broken and len(running) < jobs:
+                    i, item = queue.popleft()
+                    running[pool.submit(call_limited, fn, env, item)] = (i, item)
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    i, item = running.pop(fut)
+                    try:
+                        yield i, fut.result()
+                    except BrokenProcessPool as exc:
+                        broken, tries[i] = True, tries[i] + 1
+                        if tries[i] < MAX_TRIES:
+                            queue.append((i, item))
+                        else:
+                            yield i, fallback(item, exc)
+                    except Exception as exc:  # e.g. an item that cannot be pickled
+                        yield i, fallback(item, exc)
+
+
+def _ray_session(settings: SweepConfig):
+    """Ray, connected: the caller's session when one is up, else ``settings.address`` or a local
+    one with CPUs for ``settings.jobs`` runs at once; whether this call started it (and must shut it down)."""
+    try:
+        import ray
+    except ImportError:
+        raise MbavoError("--engine ray needs Ray: pip install -e '.[ray]' (or pip install ray)") from None
+    if ray.is_initialized():
+        return ray, False
+    if settings.address:
+        ray.init(address=settings.address)
+    else:
+        ray.init(num_cpus=settings.jobs * threads_per_run(settings), include_dashboard=False)
+    return ray, True
+
+
+def _ray(fn, items: list, settings: SweepConfig, env: dict, fallback) -> Iterator[tuple[int, Any]]:
+    """Every item as a Ray task of ``threads`` CPUs; results in the order they finish."""
+    ray, started = _ray_session(settings)
+    try:
+        remote = ray.remote(call_limited).options(num_cpus=threads_per_run(settings), max_retries=MAX_TRIES - 1)
+        refs = {remote.remote(fn, env, item): i for i, item in enumerate(items)}
+        pending = list(refs)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            i = refs[done[0]]
+            try:
+                yield i, ray.get(done[0])
+            except Exception as exc:  # the worker died, or the task could not run
+                yield i, fallback(items[i], exc)
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def map_unordered(fn: Callable, items: list, settings: SweepConfig, fallback: Callable) -> Iterator[tuple[int, Any]]:
+    """``(index, fn(item))`` for every item, as they finish, on ``settings.engine``; an item whose
+    call raised outside ``fn`` (its worker died, Ray failed) gives ``(index, fallback(item, exc))``.
+    ``fn`` and the items must be importable/picklable (module-level function, dataclasses)."""
+    if not items:
+        return iter(())
+    env = worker_env(threads_per_run(settings))
+    if settings.engine == "ray":
+        return _ray(fn, items, settings, env, fallback)
+    return _local(fn, items, settings.jobs, env, fallback)

@@ -1,0 +1,45 @@
+"""``mbavo bench speed``'s parts: the profile's split of a run's time and the memory growth read
+from frames.csv (no timing asserts: only that the parts are found and add up)."""
+
+import csv
+
+import pytest
+
+from mbavo_jax.bench_speed import PROFILE_PARTS, memory_growth, profile_run
+from mbavo_jax.config import RunConfig, TrackerConfig
+from mbavo_jax.datasets import open_sequence
+from mbavo_jax.odometry.outputs import CSV_COLUMNS
+
+from .conftest import run_cli
+
+
+def _frames_csv(folder, rss):
+    with open(folder / "frames.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, CSV_COLUMNS)
+        w.writeheader()
+        for i, r in enumerate(rss):
+            w.writerow({"index": i, "timestamp": f"{1 + i / 30:.6f}", "status": "converged", "rss_mb": f"{r:.1f}"})
+
+
+def test_memory_growth_is_the_ratio_of_late_to_early_resident_memory(tmp_path):
+    _frames_csv(tmp_path, [500.0] * 5 + [800.0] * 95 + [820.0] * 100 + [880.0])
+    g = memory_growth(tmp_path, early=100)
+    assert g["frames"] == 201 and g["rss_mb_at_100"] == 800.0 and g["rss_mb_at_end"] == 880.0
+    assert g["ratio"] == pytest.approx(1.1) and g["peak_rss_mb"] == 880.0
+    with pytest.raises(ValueError, match="need more than 300"):
+        memory_growth(tmp_path, early=300)
+
+
+@pytest.mark.slow
+def test_profile_splits_a_run_into_its_parts(tmp_path):
+    seq_dir = tmp_path / "seq"
+    assert run_cli("synth", "--out", str(seq_dir), "--preset", "strong", "--frames", "4", "--width", "160", "--height", "120", "-q") == 0
+    seq = open_sequence(seq_dir)
+    config = RunConfig(tracker=TrackerConfig(response_gamma=2.2, n=8))
+    r = profile_run(seq, tmp_path / "run", config)
+    assert set(r["parts"]) == set(PROFILE_PARTS) and r["frames"] == 4
+    assert r["parts"]["tracking"] > 0 and r["parts"]["writing outputs"] > 0 and r["parts"]["reading frames"] > 0
+    assert r["parts"]["back-end (mono)"] == 0  # an RGB-D run
+    assert sum(r["parts"].values()) + r["rest"] == pytest.approx(r["seconds"])
+    assert 0 <= sum(r["parts"].values()) <= r["seconds"]
+    assert (tmp_path / "run" / "trajectory.txt").is_file()

@@ -37,7 +37,8 @@ from .tracking import Keyframe, constant_velocity_guess, track
 
 __all__ = ["run_tracking_benchmark", "format_tracking_table", "run_odometry_benchmark", "format_odometry_table",
            "main_tracking", "main_odometry", "Open3DPeer", "OpenCVPeer", "ODOMETRY_METHODS", "OURS_ODOMETRY",
-           "odometry_sweep", "nested_results", "run_ours", "run_peer", "make_peer", "deblur_quality", "tum_blurred"]
+           "odometry_sweep", "nested_results", "run_ours", "run_peer", "make_peer", "deblur_quality", "tum_blurred",
+           "bench_data", "with_hidden_exposure", "tracking_pairs"]
 
 # ---------------------------------------------------------------------------------------- peers
 
@@ -145,7 +146,7 @@ def _errors(kf: Keyframe, est: ExposureTrajectory, gt: ExposureTrajectory):
     return float(np.nanmedian(ends)), float(np.nanmedian(mid))
 
 
-def _pairs(seq, frames: int):
+def tracking_pairs(seq, frames: int):
     """(index, sharp keyframe, its depth, next frame, constant-velocity guess, true path) per pair; the
     guess's exposure is the recorded one, or without metadata ``odometry.exposure_guess`` of the interval."""
     _, mids = seq.groundtruth
@@ -243,7 +244,7 @@ def run_tracking_benchmark(data, frames: int = 20, peers: bool = True, progress:
     adapters, notes = _tracking_peers(seq.camera, peers, peer_depth_max)
     rows = {name: {"ms": [], "endpoint": [], "mid": [], "ok": 0} for name in [*ours, *adapters]}
     recompiles = dict.fromkeys(ours, 0)
-    pairs = list(_pairs(seq, frames))
+    pairs = list(tracking_pairs(seq, frames))
     with bar(len(pairs), "bench", progress, unit="pair") as pbar:
         for idx, pair in enumerate(pairs):
             _track_pair(rows, recompiles, ours, adapters, seq.camera, base, idx == 0, pair)
@@ -271,7 +272,7 @@ def format_tracking_table(s: dict) -> str:
     return "\n".join(lines)
 
 
-def _bench_data(preset: str, cfg: BenchConfig, frames: int, quiet: bool = False, depth_model: str = "exact",
+def bench_data(preset: str, cfg: BenchConfig, frames: int, quiet: bool = False, depth_model: str = "exact",
                 scene: str = "room") -> pathlib.Path:
     """The generated sequence of a preset (``runs/bench_<preset>[_<scene>]_<w>x<h>_seed<s>[_sensor]``),
     made again when missing, shorter than ``frames`` or older than the depth noise record in camera.yaml."""
@@ -290,7 +291,7 @@ def _bench_data(preset: str, cfg: BenchConfig, frames: int, quiet: bool = False,
     return data
 
 
-def _with_hidden_exposure(seqs: dict, names: str) -> dict:
+def with_hidden_exposure(seqs: dict, names: str) -> dict:
     """``seqs`` plus, for each of ``names`` (or 'all'), ``<name>_noexp``: the same images with the
     exposure metadata removed (``synthetic.exposure_hidden_copy``, next to the data)."""
     from .synthetic import exposure_hidden_copy
@@ -313,8 +314,8 @@ def main_tracking(cfg: BenchConfig, data=None, fmt: str = "table", quiet: bool =
     if data:
         runs = {pathlib.Path(data).name: pathlib.Path(data)}
     else:
-        runs = {p: _bench_data(p, cfg, cfg.frames + 2, quiet) for p in cfg.preset.split(",")}
-    runs = _with_hidden_exposure(runs, cfg.hide_exposure)
+        runs = {p: bench_data(p, cfg, cfg.frames + 2, quiet) for p in cfg.preset.split(",")}
+    runs = with_hidden_exposure(runs, cfg.hide_exposure)
     results = {name: run_tracking_benchmark(path, cfg.frames, peers=not cfg.no_peers, progress=not quiet,
                                                  peer_depth_max=cfg.peer_depth_max) for name, path in runs.items()}
     if fmt == "json":
@@ -561,15 +562,15 @@ def main_odometry(cfg: BenchConfig, fmt: str = "table", quiet: bool = False, set
     methods = parse_methods(cfg.methods, cfg.no_peers)
     seqs = {}
     for preset in filter(None, cfg.presets.split(",")):
-        seqs[preset] = _bench_data(preset, cfg, cfg.frames, quiet)
+        seqs[preset] = bench_data(preset, cfg, cfg.frames, quiet)
     for preset in filter(None, cfg.sensor_presets.split(",")):
-        seqs[f"{preset}_sensor"] = _bench_data(preset, cfg, cfg.frames, quiet, depth_model="sensor")
+        seqs[f"{preset}_sensor"] = bench_data(preset, cfg, cfg.frames, quiet, depth_model="sensor")
     for scene in filter(None, cfg.scenes.split(",")):
         for preset in filter(None, cfg.scene_presets.split(",")):
-            seqs[f"{preset}_{scene}"] = _bench_data(preset, cfg, cfg.frames, quiet, scene=scene)
+            seqs[f"{preset}_{scene}"] = bench_data(preset, cfg, cfg.frames, quiet, scene=scene)
     if cfg.tum:
         seqs["tum_blurred"] = tum_blurred(cfg, quiet)
-    seqs = _with_hidden_exposure(seqs, cfg.hide_exposure)
+    seqs = with_hidden_exposure(seqs, cfg.hide_exposure)
     root = pathlib.Path(cfg.out)
     res = run_odometry_benchmark(seqs, root, progress=not quiet, depth_weight=cfg.depth_weight, methods=methods,
                                  peer_depth_max=cfg.peer_depth_max, settings=settings)

@@ -134,10 +134,10 @@ def format_mono_table(results: dict) -> str:
 def main_mono(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
     """``mbavo bench mono``: the presets of ``cfg.presets`` (exposure hidden, depth not read by the
     mono methods), KITTI 07 and the TUM clip sharp and blurred."""
-    from .bench import _bench_data, _with_hidden_exposure, tum_blurred
+    from .bench import bench_data, with_hidden_exposure, tum_blurred
 
-    seqs = {p: _bench_data(p, cfg, cfg.frames, quiet) for p in cfg.presets.split(",") if p}
-    seqs = {k: v for k, v in _with_hidden_exposure(seqs, "all").items() if k.endswith("_noexp")}
+    seqs = {p: bench_data(p, cfg, cfg.frames, quiet) for p in cfg.presets.split(",") if p}
+    seqs = {k: v for k, v in with_hidden_exposure(seqs, "all").items() if k.endswith("_noexp")}
     if cfg.kitti:
         seqs["kitti07"] = pathlib.Path(cfg.kitti)
     if cfg.tum:

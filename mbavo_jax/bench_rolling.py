@@ -10,7 +10,8 @@ default (``tracker.depth_weight`` 0, as ``mbavo bench odometry``'s ours_n64):
 * ``rs``: blur + rolling-shutter model (defaults; the readout from camera.yaml),
 * ``blur``: the global-shutter blur model (``tracker.readout_s=0``),
 * ``n1``: classic direct alignment (``tracker.blur_aware=false``, readout 0),
-* ``rs_cubic``: ``rs`` with the cubic-spline exposure path (``tracker.trajectory=cubic``).
+* ``rs_cubic``: ``rs`` with the cubic-spline exposure path (``tracker.trajectory=cubic``),
+* ``rs_cubic_prior``: ``rs_cubic`` with a curvature prior on its control poses (σ = 0.01 rad).
 
 Scores: ATE of the mid-exposure poses (SE3-aligned RMSE), the per-row endpoint reprojection error of
 the estimated exposure paths (``evaluation.row_path_error``: each row's part of the estimated path,
@@ -41,6 +42,7 @@ ROLLING_METHODS: dict[str, tuple[str, ...]] = {
     "blur": ("tracker.readout_s=0",),
     "n1": ("tracker.blur_aware=false", "tracker.readout_s=0"),
     "rs_cubic": ("tracker.trajectory=cubic",),
+    "rs_cubic_prior": ("tracker.trajectory=cubic", "tracker.curvature_prior_rad=0.01"),
 }
 ROLLING_DEFAULTS = {"presets": "strong,extreme", "out": "runs/bench_rolling"}  # BenchConfig values this benchmark changes
 
@@ -123,8 +125,8 @@ def _track_ms(run: pathlib.Path) -> float:
 
 
 def _row_error(seq, run: pathlib.Path, config: RunConfig) -> dict:
-    """Per-row endpoint error of the run's exposure paths (global-shutter ground truth: every row the
-    frame's path); {} when the run wrote none."""
+    """Per-row endpoint error of the exposure paths of the run's tracked frames (global-shutter
+    ground truth: every row the frame's path); {} when the run wrote none."""
     from .evaluation import global_shutter_rows, row_path_error
     from .geometry.trajectory import readout_fraction
     from .io import read_exposure_file, read_exposure_spline_file
@@ -136,11 +138,25 @@ def _row_error(seq, run: pathlib.Path, config: RunConfig) -> dict:
         est = read_exposure_spline_file(spline) if spline.is_file() else read_exposure_file(run / "exposure.txt")
     except MbavoError:  # a run that wrote no path
         return {}
+    est = _tracked_only(est, run)
+    if len(est[0]) == 0:
+        return {}
     truth = seq.exposure_rows or global_shutter_rows(seq.exposure_paths, seq.camera.height)
     rho = readout_fraction(config.tracker.readout_s, float(seq.exposures[0]))
     res = row_path_error(truth, est, seq.camera.as_dict(), readout=rho, max_diff=config.evaluation.t_max_diff)
     return {"row_endpoint_px": res["reprojection_px"]["mean"], "row_endpoint_px_median": res["reprojection_px"]["median"],
             "per_row_px": res["per_row_px"], "model_readout_fraction": rho}
+
+
+def _tracked_only(est: tuple, run: pathlib.Path) -> tuple:
+    """The exposure paths of ``est`` (stamps first) whose frames the tracker estimated (frames.csv
+    status converged or max_steps): a keyframe started without tracking (the first frame, a reset)
+    has a placeholder path (start = end) that no method estimated."""
+    from .odometry.folder import committed_rows
+
+    tracked = np.asarray([float(r["timestamp"]) for r in committed_rows(run) if r["status"] in ("converged", "max_steps")])
+    keep = np.asarray([bool(len(tracked)) and bool(np.min(np.abs(tracked - t)) < 1e-6) for t in est[0]], bool)
+    return tuple(np.asarray(a)[keep] for a in est)
 
 
 def _run_method(seq, run: pathlib.Path, method: str, progress: bool) -> dict:
@@ -161,6 +177,36 @@ def _run_method(seq, run: pathlib.Path, method: str, progress: bool) -> dict:
             **_row_error(seq, run, config)}
 
 
+def call_cost(seq, pairs: int = 6) -> dict:
+    """One tracking call of ``rs`` and of ``blur`` on the same frame pairs (sharp keyframe, next
+    frame, constant-velocity guess: ``bench.tracking_pairs``), side by side in this process: the
+    median ms per call and per LM step of each (the first pair, which compiles, left out) and the
+    ratios rs / blur."""
+    from .bench import tracking_pairs
+    from .geometry.trajectory import readout_fraction
+    from .tracking import Keyframe, track
+
+    tau = float(seq.exposures[0])
+    configs = {m: method_config(m, seq.meta).tracker for m in ("rs", "blur")}
+    ms = {m: [] for m in configs}
+    steps = {m: [] for m in configs}
+    for _, sharp, depth, frame, init, _ in tracking_pairs(seq, pairs + 1):
+        for m, cfg in configs.items():
+            kf = Keyframe.create(sharp, depth, seq.camera, cfg)
+            t0 = time.perf_counter()
+            _, _, diag = track(kf, frame.image, init, cfg, readout=readout_fraction(cfg.readout_s, tau))
+            ms[m].append(1000 * (time.perf_counter() - t0))
+            steps[m].append(sum(level["steps"] for level in diag["levels"]))
+    out = {}
+    for m in configs:
+        call, step = np.asarray(ms[m][1:] or ms[m]), np.asarray(ms[m][1:] or ms[m]) / np.maximum(steps[m][1:] or steps[m], 1)
+        out[m] = {"ms_per_call": float(np.median(call)), "ms_per_lm_step": float(np.median(step)),
+                  "lm_steps": float(np.median(steps[m][1:] or steps[m]))}
+    out["call_ratio"] = out["rs"]["ms_per_call"] / out["blur"]["ms_per_call"]
+    out["step_ratio"] = out["rs"]["ms_per_lm_step"] / out["blur"]["ms_per_lm_step"]
+    return out
+
+
 def _sequence_info(path: pathlib.Path, spec: RollingSequence) -> dict:
     import yaml
 
@@ -177,7 +223,9 @@ def _cost(results: dict) -> dict:
         m = r["methods"]
         if r["readout_ms"] > 0 and "median_track_ms" in m.get("rs", {}) and m.get("blur", {}).get("median_track_ms"):
             ratios[name] = m["rs"]["median_track_ms"] / m["blur"]["median_track_ms"]
-    return {"rs_over_blur_track_ms": ratios, "median_ratio": float(np.median(list(ratios.values()))) if ratios else None}
+    calls = {name: r["call_cost"] for name, r in results.items() if "call_cost" in r}
+    return {"rs_over_blur_track_ms": ratios, "median_ratio": float(np.median(list(ratios.values()))) if ratios else None,
+            "side_by_side": calls}
 
 
 def run_rolling_benchmark(cfg: BenchConfig, methods: list[str], progress: bool = True) -> dict:
@@ -195,6 +243,8 @@ def run_rolling_benchmark(cfg: BenchConfig, methods: list[str], progress: bool =
             if progress:
                 print(f"{spec.name}: {method}", file=sys.stderr)
             results[spec.name]["methods"][method] = _run_method(seq, root / "runs" / spec.name / method, method, progress)
+        if spec.synth.readout_ms > 0 and {"rs", "blur"} <= set(methods):
+            results[spec.name]["call_cost"] = call_cost(seq)
     return {"settings": as_dict(cfg), "methods": {m: list(ROLLING_METHODS[m]) for m in methods}, "sequences": results,
             "cost": _cost(results)}
 
@@ -221,6 +271,10 @@ def format_rolling_table(res: dict) -> str:
     lines += ["", "cost per tracking call, rs / blur (same n; median frames.csv ms): "
               + (", ".join(f"{k} {v:.2f}" for k, v in cost["rs_over_blur_track_ms"].items()) or "-")
               + (f"; median {cost['median_ratio']:.2f}" if cost["median_ratio"] is not None else ""),
+              "one tracking call side by side (same pairs, sharp keyframe; ms per call / per LM step, rs vs blur): "
+              + (", ".join(f"{k} {c['rs']['ms_per_call']:.0f} vs {c['blur']['ms_per_call']:.0f} ms ({c['call_ratio']:.2f}x), "
+                           f"{c['rs']['ms_per_lm_step']:.1f} vs {c['blur']['ms_per_lm_step']:.1f} ms/step ({c['step_ratio']:.2f}x)"
+                           for k, c in cost.get("side_by_side", {}).items()) or "-"),
               "methods: " + "; ".join(f"{m}: {' '.join(o) or 'defaults (readout from camera.yaml)'}" for m, o in res["methods"].items())
               + "; all with tracker.depth_weight=0 (images only)",
               "bend px: mean over frames of the true path's largest deviation from the straight start-end path (synth.yaml)"]

@@ -107,14 +107,14 @@ def speed_benchmark(cfg: BenchConfig, quiet: bool = False) -> dict:
     frames): our whole loop under the profile, after a 3-frame warm-up run in the same process (so
     tracing and compilation, measured by the start-up runs, are not the loop's cost), Open3D hybrid's frame-to-frame odometry on the same frames, and the
     start-up of fresh processes with an empty cache, a full one and none."""
-    from .bench import _bench_data, run_peer
+    from .bench import bench_data, run_peer
     from .config import calibration_of, load_config
     from .datasets import open_sequence
     from .odometry import run_odometry
 
     out, results = pathlib.Path(cfg.out).parent / "bench_speed", {}
     for preset in [p for p in cfg.preset.split(",") if p]:
-        data = _bench_data(preset, cfg, cfg.frames, quiet)
+        data = bench_data(preset, cfg, cfg.frames, quiet)
         seq = open_sequence(data)
         config = load_config(None, [], calibration_of(seq.meta))
         startup = startup_runs(data, out / preset / "startup")

@@ -168,6 +168,8 @@ class TrackerConfig(Settings):
     blur_prior: float = setting(0.01, "weak prior on the exposure motion start^-1 end: its intensity scale (0 = off)", NONNEG)
     blur_prior_min_rad: float = setting(5e-4, "prior sigma = min + rel * |initial exposure motion| (radians)", POSITIVE)
     blur_prior_rel: float = setting(0.2, "see blur_prior_min_rad", NONNEG)
+    curvature_prior_rad: float = setting(0.0, "trajectory: cubic: prior sigma (radians) on the control poses' second differences "
+                                               "(0 = off; small: nearly straight paths)", NONNEG)
     depth_weight: float = setting(0.0, "RGB-D: weight of the frame's depth map, intensity units per sigma (0 = images only)", NONNEG)
     depth_sigma: tuple[float, float] = setting((0.0012, 0.0019), "depth noise sigma(z) = a + b (z - 0.4)^2 m (Kinect v1; camera.yaml's wins)", NONNEG)
     depth_huber: float = setting(3.0, "Huber threshold of the depth term, in sigma", POSITIVE)

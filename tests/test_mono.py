@@ -9,16 +9,24 @@ import json
 import shutil
 
 import cv2
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from mbavo_jax.bench_mono import trajectory_scores
 from mbavo_jax.config import EvalConfig, RunConfig
 from mbavo_jax.datasets import open_sequence
+from mbavo_jax.geometry import ExposureTrajectory, PinholeCamera, Pose
 from mbavo_jax.io import read_ply, read_tum_trajectory
+from mbavo_jax.mono import candidates as mc
+from mbavo_jax.mono.init import TwoView
+from mbavo_jax.mono.window import Window, add_keyframe, add_points
 from mbavo_jax.odometry import run_odometry
-from mbavo_jax.odometry.mono import MonoPipeline
+from mbavo_jax.odometry.mono import MonoPipeline, rescaled, typical_idepth
 from mbavo_jax.synthetic import PRESETS, SynthConfig, generate_sequence
+from mbavo_jax.synthetic.generator import camera_path
+from mbavo_jax.synthetic.scene import default_scene, render_exposure, scene_arrays
 
 FRAMES = 36
 
@@ -134,3 +142,50 @@ def test_python_api_runs_the_monocular_pipeline(seq_dir, tmp_path):
     summary = run_odometry(seq, tmp_path / "run", pipeline=pipeline, progress=False, max_frames=14)
     assert summary["mode"] == "mono" and summary["frames"] == 14 and summary["tracked"] >= 3
     assert pipeline.config.tracker.depth_weight == 0.0
+
+
+# ------------------------------------------------- candidates of a sharp keyframe in blurry frames
+
+
+def test_sharp_keyframe_candidates_are_found_in_blurry_frames_through_the_blur_model():
+    """A deblurred (sharp) keyframe's candidates traced in frames blurred over ~15 px: compared as
+    they are, most searches end as outliers; with the frames' exposure paths (``FrameBlur``) the
+    patterns are blurred by the blur model first, and most candidates converge to the true depth."""
+    w, h, exposure, speed, rotation = 320, 240, 0.04, 1.0, 90.0
+    camera = PinholeCamera.create(262.5, 262.5, (w - 1) / 2, (h - 1) / 2, w, h)
+    arrays = scene_arrays(default_scene(0))
+    at = lambda t: camera_path(t, speed, rotation, 0)  # noqa: E731
+    _, host, depth = render_exposure(arrays, camera, jax.vmap(at)(jnp.array([1.0])), at(1.0))
+    host_pose, config = at(1.0), RunConfig().mono
+    window, slot = add_keyframe(Window.empty(2, 64, h, w), host, host_pose)
+    window, _ = add_points(window, slot, np.array([[160.0, 120.0]], np.float32), np.array([1.0 / np.median(depth)], np.float32))
+    plain = blurred = mc.select_candidates(np.asarray(host), 400, config)
+    for t in (1.03, 1.07):
+        poses = jax.vmap(at)(t + jnp.linspace(-0.5, 0.5, 24) * exposure)
+        frame, _, _ = render_exposure(arrays, camera, poses, at(t))
+        T_frame_host = at(t).inverse().compose(host_pose)
+        path = ExposureTrajectory(at(t - exposure / 2), at(t + exposure / 2)).seen_from(host_pose.inverse())
+        blur = mc.FrameBlur.create(path, 0.0, typical_idepth(window, slot))
+        plain = mc.trace(plain, host, frame, camera, T_frame_host, jnp.zeros(2, jnp.float32), config)
+        blurred = mc.trace(blurred, host, frame, camera, T_frame_host, jnp.zeros(2, jnp.float32), config, blur)
+    px = np.asarray(blurred.pixels).astype(int)
+    truth = 1.0 / np.asarray(depth)[px[:, 1], px[:, 0]]
+    valid = np.asarray(blurred.valid)
+    outliers = lambda c: float((np.asarray(c.status) == mc.OUTLIER)[valid].mean())  # noqa: E731
+    ready = np.asarray(mc.ready(blurred, config))
+    err = np.abs(np.asarray(mc.estimates(blurred)[1]) - truth) / truth
+    assert outliers(plain) > 0.3 and outliers(blurred) < 0.1, (outliers(plain), outliers(blurred))
+    assert ready.sum() > 2 * np.asarray(mc.ready(plain, config)).sum() and ready.sum() > 0.3 * valid.sum()
+    assert np.median(err[ready]) < 0.05
+
+
+def test_a_new_start_after_a_loss_keeps_the_scale_of_the_lost_window():
+    """A two-view start (median point depth 1) rescaled to the lost window's median depth: points and
+    translation together, so the geometry (bearings, rotation) is unchanged."""
+    T = Pose.from_matrix(jnp.asarray(np.array([[1, 0, 0, 0.1], [0, 1, 0, -0.02], [0, 0, 1, 0.01], [0, 0, 0, 1]], np.float32)))
+    idepth = np.array([0.5, 1.0, 2.0], np.float32)
+    start = TwoView(True, "", T, np.zeros((3, 2), np.float32), idepth, 2.0, 3, 3)
+    again = rescaled(start, 2.5)
+    assert np.median(1.0 / again.idepth) == pytest.approx(2.5)
+    assert np.allclose(np.asarray(again.T_ref_cur.t), 2.5 * np.asarray(T.t)) and np.allclose(again.T_ref_cur.q, T.q)
+    assert rescaled(start, 1.0) is start

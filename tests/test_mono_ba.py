@@ -22,8 +22,9 @@ from mbavo_jax.geometry import quaternion as quat
 from mbavo_jax.geometry.camera import PinholeCamera
 from mbavo_jax.geometry.pose import Pose
 from mbavo_jax.image import downsample
-from mbavo_jax.mono import ba
-from mbavo_jax.mono.window import Prior, Window, add_keyframe, add_points, points_of, world_points
+from mbavo_jax.mono import ba, depthmap
+from mbavo_jax.mono.depthmap import project_points
+from mbavo_jax.mono.window import Prior, Window, add_keyframe, add_points, insert_points, points_of, world_points
 from mbavo_jax.synthetic.generator import camera_path
 from mbavo_jax.synthetic.scene import default_scene, render_exposure, scene_arrays
 from mbavo_jax.tracking.points import downsample_depth, select_points
@@ -187,6 +188,54 @@ def test_window_helpers():
     assert xyz.shape == (5, 3) and np.allclose(value[:3], 0.25) and np.allclose(value[3:], 0.5)
     X = cam.backproject(jnp.array([10.0, 20.0]), 2.0)
     np.testing.assert_allclose(xyz[0], np.asarray(T.apply(X)), rtol=1e-5)
+
+
+
+def test_insert_points_fills_free_slots_in_order_and_stops_when_full():
+    win = Window.empty(2, 6, 48, 64)
+    win, s0 = add_keyframe(win, np.full((48, 64), 0.5, np.float32), Pose.identity())
+    win, s1 = add_keyframe(win, np.full((48, 64), 0.25, np.float32), Pose.identity())
+    win, _ = add_points(win, s0, np.zeros((3, 2)), np.ones(3))
+    win = dataclasses.replace(win, point_valid=win.point_valid.at[1].set(False))  # slots 1, 3, 4, 5 free
+    pixels = np.arange(12, dtype=np.float32).reshape(6, 2)
+    mask = np.array([True, False, True, True, True, True])
+    out, added = insert_points(win, jnp.asarray(s1, jnp.int32), pixels, 1.0 + np.arange(6, dtype=np.float32), mask)
+    assert np.asarray(added).tolist() == [True, False, True, True, True, False]  # 4 free slots for 5 points
+    assert np.asarray(out.point_valid).all()
+    np.testing.assert_array_equal(np.asarray(out.host), [s0, s1, s0, s1, s1, s1])
+    np.testing.assert_array_equal(np.asarray(out.idepth)[[1, 3, 4, 5]], [1.0, 3.0, 4.0, 5.0])
+    np.testing.assert_array_equal(np.asarray(out.pixels)[[1, 3, 4, 5]], pixels[[0, 2, 3, 4]])
+    np.testing.assert_array_equal(np.asarray(out.idepth)[[0, 2]], [1.0, 1.0])  # the others untouched
+
+
+def test_adding_points_of_many_counts_compiles_few_programs():
+    win = Window.empty(2, 2000, 48, 64)
+    win, slot = add_keyframe(win, np.full((48, 64), 0.5, np.float32), Pose.identity())
+    add_points(win, slot, np.zeros((1, 2)), np.ones(1))
+    before = insert_points._cache_size()
+    for n in (3, 17, 100, 255):
+        win2, added = add_points(win, slot, np.zeros((n, 2)), np.ones(n))
+        assert added == n and int(win2.point_valid.sum()) == n
+    assert insert_points._cache_size() == before  # one padded length for all of these
+
+
+
+def test_project_points_pads_without_changing_the_result():
+    cam = _camera(64, 48)
+    T = Pose(quat.exp(jnp.array([0.02, -0.1, 0.05])), jnp.array([0.1, -0.2, 0.3]))
+    rng = np.random.default_rng(1)
+    xyz = np.concatenate([rng.uniform(-1, 1, (40, 2)), rng.uniform(-1, 4, (40, 1))], 1).astype(np.float32)
+    direct = [np.asarray(v) for v in jax.vmap(lambda X: T.apply(X))(jnp.asarray(xyz)).T]
+    project_points(cam, T, xyz[:1])
+    before = depthmap._project._cache_size()
+    for n in (5, 40):
+        x, z, ok = project_points(cam, T, xyz[:n])
+        assert x.shape == (n, 2) and z.shape == ok.shape == (n,)
+        np.testing.assert_allclose(z, direct[2][:n], rtol=1e-5)
+        front = direct[2][:n] > 1e-6
+        np.testing.assert_allclose(x[front, 0], cam.fx * direct[0][:n][front] / direct[2][:n][front] + cam.cx, rtol=1e-4)
+        assert not ok[~front].any()
+    assert depthmap._project._cache_size() == before
 
 
 # ------------------------------------------------------------------- a window of the default scene

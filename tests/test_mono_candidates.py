@@ -14,6 +14,7 @@ import pytest
 from mbavo_jax.config import MonoConfig
 from mbavo_jax.geometry import PinholeCamera, Pose
 from mbavo_jax.mono import candidates as mc
+from mbavo_jax.mono.window import Window, add_keyframe
 from mbavo_jax.synthetic.generator import camera_path
 from mbavo_jax.synthetic.scene import default_scene, render_exposure, scene_arrays
 from mbavo_jax.tracking.points import gradient_magnitude
@@ -212,3 +213,21 @@ def test_padding_slots_are_never_traced_or_ready(scene):
     assert not np.asarray(mc.ready(out, CONFIG))[pad].any()
     _, idepth = mc.estimates(c)
     assert np.all(np.asarray(idepth) == 0.0)  # unbounded intervals have no estimate yet
+
+
+def test_activate_moves_ready_candidates_into_the_window_as_far_as_it_holds_them(scene, selected):
+    camera, host, frames, _ = scene
+    c = trace_all(selected, camera, host, frames, [f.sharp for f in frames])[-1]
+    mask = np.asarray(mc.ready(c, CONFIG))
+    assert mask.sum() > 20
+    pixels, idepth = (np.asarray(v) for v in mc.estimates(c))
+    win, slot = add_keyframe(Window.empty(2, int(mask.sum()) - 5, H, W), np.asarray(host.sharp), host.T_world_cam)
+    out, rest = mc.activate(win, jnp.asarray(slot, jnp.int32), c, CONFIG)
+    joined = np.flatnonzero(mask)[: win.capacity]  # in candidate order, until the window is full
+    np.testing.assert_array_equal(np.asarray(out.pixels), pixels[joined])
+    np.testing.assert_array_equal(np.asarray(out.idepth), idepth[joined])
+    assert np.asarray(out.point_valid).all() and (np.asarray(out.host) == slot).all()
+    valid = np.asarray(c.valid).copy()
+    valid[joined] = False
+    np.testing.assert_array_equal(np.asarray(rest.valid), valid)  # those that joined are no longer candidates
+    assert int(np.asarray(mc.ready(rest, CONFIG)).sum()) == 5  # those that did not fit wait

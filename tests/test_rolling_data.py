@@ -274,8 +274,20 @@ def test_bench_rolling_shutter_end_to_end(mbavo, tmp_path):
     assert rs["model_readout_fraction"] == pytest.approx(30 / 55) and blur["model_readout_fraction"] == 0.0
     assert np.isfinite(rs["ate_rmse_m"]) and np.isfinite(rs["row_endpoint_px"]) and len(rs["per_row_px"]) == 9
     assert "strong_ro30" in results["cost"]["rs_over_blur_track_ms"]
+    side = results["cost"]["side_by_side"]["strong_ro30"]
+    assert side["rs"]["lm_steps"] >= 1 and np.isfinite(side["call_ratio"]) and np.isfinite(side["step_ratio"])
     table = (out / "table.md").read_text()
     assert table.startswith("| sequence |") and "| strong_ro30 | 30 |" in table and "rs / blur" in table
     mtime = (out / "data" / "strong_ro30" / "rgb.txt").stat().st_mtime_ns
     assert mbavo(*args[:-5], "--methods", "blur", "--out", out, "-q").returncode == 0  # the sequence is reused
     assert (out / "data" / "strong_ro30" / "rgb.txt").stat().st_mtime_ns == mtime
+
+
+def test_row_error_leaves_out_frames_the_tracker_did_not_estimate(tmp_path):
+    from mbavo_jax.bench_rolling import _tracked_only
+
+    (tmp_path / "frames.csv").write_text("index,timestamp,status\n0,1.000000,keyframe\n1,1.033333,converged\n"
+                                         "2,1.066667,lost\n3,1.100000,max_steps\n")
+    stamps = np.array([1.0, 1.033333, 1.066667, 1.1])
+    kept = _tracked_only((stamps, np.arange(4.0), np.arange(4.0) + 10), tmp_path)
+    assert kept[0].tolist() == [1.033333, 1.1] and kept[1].tolist() == [1.0, 3.0] and kept[2].tolist() == [11.0, 13.0]

@@ -562,12 +562,13 @@ def bundle_adjust(window: Window, camera: PinholeCamera, config: MonoConfig) -> 
 @jax.jit
 @_full_precision
 def _marginalize(window: Window, camera: PinholeCamera, slot, huber, outlier) -> Window:
+    lin = linearize(window, camera, huber, outlier)
     data = jax.lax.cond(window.prior.active(), _zero_equations,  # the anchor's weights matter only without a prior
-                        lambda w: normal_equations(linearize(w, camera, huber, outlier), w), window)
+                        lambda w: normal_equations(lin, w), window)
     anchor = make_anchor(window, data, scale_with_prior=False)
     hosted = window.point_valid & (window.host == slot)
-    own = dataclasses.replace(window, point_valid=hosted)
-    neq = _mask_cameras(normal_equations(linearize(own, camera, huber, outlier), own), window.kf_valid)
+    own = eqx.tree_at(lambda l: l.w, lin, jnp.where(hosted[:, None, None], lin.w, jnp.zeros_like(lin.w)))  # the slot's points only
+    neq = _mask_cameras(normal_equations(own, window), window.kf_valid)
     H, b = reduce_points(neq)
     Hc, bc, _ = camera_terms(window, anchor)
     H, b = marginalize_slot(H + Hc, b + bc, slot)

@@ -8,7 +8,8 @@ until its first trace). One trace in a frame:
 1. projects the interval's ends into the frame: a segment of the epipolar line (an unbounded interval
    searches a fixed length from its far end, DSO's maxPixSearch);
 2. steps along it a pixel at a time, scoring DSO's 8-pixel pattern (Huber SSD against the host's
-   pattern under the affine brightness e^a·I + b); quality = the best energy outside the best's
+   pattern under the affine brightness e^a·I + b; with the frame's exposure path, the host's pattern
+   is first blurred as the frame sees it, by the blur model); quality = the best energy outside the best's
    neighbourhood / the best energy;
 3. refines the best position by Gauss-Newton along the line and sets the interval to the inverse
    depths at best ± the expected error in pixels (large when the image gradient is nearly
@@ -28,12 +29,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from ..blur import synthesize, virtual_pq_table
 from ..config import MonoConfig
 from ..geometry import PinholeCamera, Pose
+from ..geometry.spline import ExposurePath
+from ..geometry.trajectory import row_times
 from ..image import bilinear, bilinear_with_gradient
 from ..tracking.points import PATTERN, gradient_magnitude
+from .window import Window, insert_points
 
-__all__ = ["Candidates", "select_candidates", "trace", "ready", "estimates", "UNTRACED", "GOOD", "SKIPPED",
+__all__ = ["Candidates", "FrameBlur", "select_candidates", "trace", "ready", "estimates", "activate", "UNTRACED", "GOOD", "SKIPPED",
            "BAD_CONDITION", "OUT_OF_IMAGE", "OUTLIER"]
 
 # Status of a candidate's last trace.
@@ -56,6 +61,7 @@ READY_PIXELS = 8.0  # px: largest interval along the last line of a ready candid
 GRAD_ADD = 7.0 / 255.0  # selection: a pixel's gradient must exceed its region's median by this
 REGION = 32  # px: blocks of the region-adaptive gradient threshold
 SELECT_LEVELS = 3  # selection passes with cells 1x, 2x, 4x, each with the threshold x 0.75
+BLUR_SAMPLES = 16  # virtual frames of the blur model when a sharp host's pattern is blurred for a blurry frame
 
 
 class Candidates(eqx.Module):
@@ -347,14 +353,50 @@ def _searched(old: _Trace, line: _Line, seg: _Segment, s, energy, quality, energ
     return jax.tree_util.tree_map(lambda o, g: jnp.where(bad, o, g), outlier, good)
 
 
+class FrameBlur(eqx.Module):
+    """How a blurry frame was exposed, for tracing a sharp host's candidates in it: ``path`` the
+    frame's exposure path in the host (``T_host_i``; its middle is the frame's pose), ``readout`` its
+    readout fraction, ``idepth`` the inverse depth that a candidate without a bounded interval is
+    blurred at (a typical one of the host's scene; 0: the near end of its search)."""
+
+    path: ExposurePath
+    readout: Float[Array, ""]
+    idepth: Float[Array, ""]
+
+    @staticmethod
+    def create(path: ExposurePath, readout: float = 0.0, idepth: float = 0.0) -> "FrameBlur":
+        return FrameBlur(path, jnp.asarray(readout, jnp.float32), jnp.asarray(idepth, jnp.float32))
+
+
+def blurred_colours(host_image: Float[Array, "H W"], camera: PinholeCamera, blur: FrameBlur, line: _Line, seg: _Segment,
+                    old: _Trace, pattern: Float[Array, "P 2"], fallback: Float[Array, " P"]) -> Float[Array, " P"]:
+    """The host's pattern as the blurry frame shows it (the blur model ``blur.synthesize`` with
+    ``BLUR_SAMPLES`` virtual frames along ``blur.path``), on the host's frontal-parallel plane at the
+    middle of the candidate's inverse-depth interval (unbounded: ``blur.idepth``, or the segment's
+    start), around that depth's frame pixel; ``fallback`` where a sample leaves the host."""
+    bounded = jnp.isfinite(old.idepth_max)
+    near = line.idepth_at(seg.start, seg.direction)
+    guess = jnp.where(blur.idepth > 0, blur.idepth, near)
+    idepth = jnp.maximum(jnp.where(bounded, 0.5 * (old.idepth_min + jnp.where(bounded, old.idepth_max, 0.0)), guess), 1e-6)
+    x, _ = line.project(idepth)
+    x = jnp.where(jnp.isfinite(x), x, seg.start)
+    rows = jnp.zeros(pattern.shape[0], jnp.int32)
+    pqs = virtual_pq_table(blur.path, row_times(BLUR_SAMPLES, x[1:2], camera.height, blur.readout))
+    rays = jax.vmap(camera.unit_ray)(x + pattern)
+    values, ok = synthesize(host_image, camera, pqs, rays, jnp.full(pattern.shape[0], 1.0 / idepth), rows)
+    return jnp.where(ok, values, fallback)
+
+
 def trace_one(host_image, frame_image, camera: PinholeCamera, T_frame_host: Pose, affine_ab, pixel, old: _Trace, huber: float,
-              energy_th: float, steps: int, max_pix: float) -> _Trace:
-    """One candidate traced in a frame (see the module docstring); skipped traces keep the interval."""
+              energy_th: float, steps: int, max_pix: float, blur: FrameBlur | None = None) -> _Trace:
+    """One candidate traced in a frame (see the module docstring); skipped traces keep the interval.
+    With the frame's ``blur``, the host's pattern is blurred as the frame sees it first."""
     host = host_pattern(host_image, pixel)
     line = epipolar_line(camera, T_frame_host, pixel)
     seg = search_segment(line, camera, old.idepth_min, old.idepth_max, host.grad_outer, max_pix)
     pattern = jnp.asarray(PATTERN) @ line.plane.T
-    target = jnp.exp(affine_ab[0]) * host.colours + affine_ab[1]
+    colours = host.colours if blur is None else blurred_colours(host_image, camera, blur, line, seg, old, pattern, host.colours)
+    target = jnp.exp(affine_ab[0]) * colours + affine_ab[1]
     best, best_e, second, n = discrete_search(frame_image, seg, pattern, target, host.weights, huber, steps)
     quality = second / jnp.maximum(best_e, 1e-12)
     quality = jnp.where((quality < old.quality) | (n > 10), quality, old.quality)
@@ -380,14 +422,17 @@ def search_steps(camera: PinholeCamera) -> tuple[int, float]:
 
 @functools.partial(jax.jit, static_argnames=("config",))
 def trace(c: Candidates, host_image: Float[Array, "H W"], frame_image: Float[Array, "H W"], camera: PinholeCamera,
-          T_frame_host: Pose, affine_ab: Float[Array, "2"], config: MonoConfig = MonoConfig()) -> Candidates:
+          T_frame_host: Pose, affine_ab: Float[Array, "2"], config: MonoConfig = MonoConfig(),
+          blur: FrameBlur | None = None) -> Candidates:
     """Trace every valid, not-dropped candidate of a host keyframe in a frame (both linear radiance;
     ``T_frame_host`` maps host points into the frame; the frame ≈ e^a · host + b with ``affine_ab``
-    = (a, b)). Huber threshold ``config.ba_huber``; outlier above ``config.trace_outlier`` RMS."""
+    = (a, b)). Huber threshold ``config.ba_huber``; outlier above ``config.trace_outlier`` RMS.
+    ``blur``: the frame's exposure (:class:`FrameBlur`) for a sharp host and a blurry frame; None:
+    the two look alike."""
     steps, max_pix = search_steps(camera)
     energy_th = len(PATTERN) * config.trace_outlier**2
     new = jax.vmap(lambda p, s: trace_one(host_image, frame_image, camera, T_frame_host, affine_ab, p, s, config.ba_huber,
-                                          energy_th, steps, max_pix))(c.pixels, _state(c))
+                                          energy_th, steps, max_pix, blur))(c.pixels, _state(c))
     active = c.valid & ~c.outlier
     new = jax.tree_util.tree_map(lambda a, b: jnp.where(active, a, b), new, _state(c))
     return Candidates(c.pixels, new.idepth_min, new.idepth_max, new.quality, new.energy, new.pixel_interval, c.valid,
@@ -409,3 +454,12 @@ def estimates(c: Candidates) -> tuple[Float[Array, "M 2"], Float[Array, " M"]]:
     """Host pixels (M, 2) and inverse depths (M,): the intervals' midpoints (0 while unbounded)."""
     bounded = jnp.isfinite(c.idepth_max)
     return c.pixels, jnp.where(bounded, 0.5 * (c.idepth_min + jnp.where(bounded, c.idepth_max, 0.0)), 0.0)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def activate(window: Window, slot: Int[Array, ""], c: Candidates, config: MonoConfig = MonoConfig()) -> tuple[Window, Candidates]:
+    """The ready candidates of ``c`` (hosted by keyframe ``slot``) join ``window`` as points at their
+    estimates, in order, as many as there are free point slots; those that joined leave ``c``."""
+    pixels, idepth = estimates(c)
+    window, added = insert_points(window, slot, pixels, idepth, ready(c, config))
+    return window, eqx.tree_at(lambda x: x.valid, c, c.valid & ~added)

@@ -10,13 +10,14 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..geometry import PinholeCamera, Pose
+from .window import pad_rows, padded_length
 
 __all__ = ["project_points", "sparse_depth", "filled_depth"]
 
 
 @jax.jit
-def project_points(camera: PinholeCamera, T_cam_world: Pose, xyz: Float[Array, "N 3"]):
-    """Pixels (N, 2) and z-depths (N,) of world points in a camera; ``ok`` (N,): in front and in view."""
+def _project(camera: PinholeCamera, T_cam_world: Pose, xyz: Float[Array, "N 3"]):
+    """``project_points`` compiled (jax arrays, no padding)."""
     Xc = jax.vmap(T_cam_world.apply)(xyz)
     z = Xc[:, 2]
     safe = jnp.where(z[:, None] > 1e-6, Xc, jnp.array([0.0, 0.0, 1.0], Xc.dtype))
@@ -25,12 +26,22 @@ def project_points(camera: PinholeCamera, T_cam_world: Pose, xyz: Float[Array, "
     return x, z, ok
 
 
+def project_points(camera: PinholeCamera, T_cam_world: Pose, xyz) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels (N, 2) and z-depths (N,) of world points (N, 3) in a camera; ``ok`` (N,): in front and
+    in view. NumPy results; the points are padded (``window.padded_length``) so that a varying N
+    compiles a few programs only."""
+    xyz = np.asarray(xyz, np.float32).reshape(-1, 3)
+    n = xyz.shape[0]
+    x, z, ok = jax.device_get(_project(camera, T_cam_world, pad_rows(xyz, padded_length(n))))
+    return x[:n], z[:n], ok[:n]
+
+
 def sparse_depth(camera: PinholeCamera, T_world_cam: Pose, xyz: np.ndarray) -> np.ndarray:
     """(H, W) float32 z-depth at the pixel each world point projects to (the nearest where two
     meet), NaN elsewhere."""
     depth = np.full((camera.height, camera.width), np.inf, np.float32)
     if len(xyz):
-        x, z, ok = jax.device_get(project_points(camera, T_world_cam.inverse(), jnp.asarray(xyz, jnp.float32)))
+        x, z, ok = project_points(camera, T_world_cam.inverse(), xyz)
         u, v = np.rint(x[ok, 0]).astype(int), np.rint(x[ok, 1]).astype(int)
         np.minimum.at(depth, (v, u), z[ok].astype(np.float32))
     depth[~np.isfinite(depth)] = np.nan

@@ -6,7 +6,8 @@ Each keyframe slot holds a sharp (deblurred) keyframe image in linear radiance, 
 predicts ``I_t ≈ e^(a_t - a_h) (I_h - b_h) + b_t``. Each point slot holds a host slot, its host pixel
 (level 0) and its inverse depth. ``prior`` is the marginalisation prior on the keyframe variables.
 
-The helpers below (``add_keyframe``, ``add_points``, ...) run on the host, outside ``jit``.
+The helpers below (``add_keyframe``, ``add_points``, ...) run on the host, outside ``jit``;
+``insert_points`` is their compiled core for points (fixed shapes, no host round-trip).
 """
 
 from __future__ import annotations
@@ -25,8 +26,8 @@ from ..geometry.camera import PinholeCamera
 from ..geometry.pose import Pose
 from ..image import bilinear
 
-__all__ = ["Prior", "Window", "VARS", "add_keyframe", "add_points", "world_points", "points_of", "pose_delta",
-           "set_slot_pose"]
+__all__ = ["Prior", "Window", "VARS", "add_keyframe", "add_points", "insert_points", "world_points", "points_of",
+           "pose_delta", "set_slot_pose", "padded_length", "pad_rows"]
 
 VARS = 8  # variables per keyframe: pose increment [Δr (3), Δt (3)] (``Pose.plus``), affine [Δa, Δb]
 
@@ -141,6 +142,34 @@ def add_keyframe(window: Window, image, T_world_kf: Pose, affine=(0.0, 0.0)) -> 
     return window, slot
 
 
+def padded_length(n: int, least: int = 256) -> int:
+    """The padded length of ``n`` rows: the next power of two, at least ``least`` (so that arrays
+    whose length varies from call to call compile a few programs, not one per length)."""
+    return max(least, 1 << max(int(n) - 1, 0).bit_length())
+
+
+def pad_rows(a: np.ndarray, n: int) -> np.ndarray:
+    """``a`` with zero rows appended up to ``n`` rows."""
+    return np.concatenate([a, np.zeros((n - a.shape[0], *a.shape[1:]), a.dtype)]) if n > a.shape[0] else a
+
+
+@jax.jit
+def insert_points(window: Window, slot: Int[Array, ""], pixels: Float[Array, "N 2"], idepth: Float[Array, " N"],
+                  mask: Bool[Array, " N"]) -> tuple[Window, Bool[Array, " N"]]:
+    """``window`` with the points where ``mask`` (host pixels, inverse depths) hosted by keyframe
+    ``slot``, in order, in its free point slots (lowest first), and which of them were added (all
+    unless the free slots run out). One program per N and window shape."""
+    p = window.capacity
+    free = jnp.nonzero(~window.point_valid, size=p, fill_value=p)[0].astype(jnp.int32)
+    rank = jnp.cumsum(mask, dtype=jnp.int32) - 1
+    added = mask & (rank < jnp.sum(~window.point_valid, dtype=jnp.int32))
+    dest = jnp.where(added, free[jnp.clip(rank, 0, p - 1)], jnp.int32(p))  # p: out of range, dropped
+    put = lambda a, v: a.at[dest].set(v.astype(a.dtype), mode="drop")  # noqa: E731
+    window = dataclasses.replace(window, host=put(window.host, jnp.broadcast_to(slot, dest.shape)), pixels=put(window.pixels, pixels),
+                                 idepth=put(window.idepth, idepth), point_valid=put(window.point_valid, jnp.ones_like(mask)))
+    return window, added
+
+
 def add_points(window: Window, slot: int, pixels, idepth) -> tuple[Window, int]:
     """``window`` with points hosted by keyframe ``slot`` in its free point slots (in order), and how
     many were added (fewer than given when the window runs out of slots). ``pixels``: (N, 2) host
@@ -151,17 +180,10 @@ def add_points(window: Window, slot: int, pixels, idepth) -> tuple[Window, int]:
     idepth = np.asarray(idepth, np.float32).reshape(-1)
     if pixels.shape[0] != idepth.shape[0]:
         raise ArgumentError(f"{pixels.shape[0]} pixels but {idepth.shape[0]} inverse depths")
-    free = np.flatnonzero(~np.asarray(window.point_valid))[: pixels.shape[0]]
-    n = int(free.size)
-    dtype = window.pixels.dtype
-    window = dataclasses.replace(
-        window,
-        host=window.host.at[free].set(slot),
-        pixels=window.pixels.at[free].set(jnp.asarray(pixels[:n], dtype)),
-        idepth=window.idepth.at[free].set(jnp.asarray(idepth[:n], dtype)),
-        point_valid=window.point_valid.at[free].set(True),
-    )
-    return window, n
+    n = padded_length(pixels.shape[0])
+    mask = np.arange(n) < pixels.shape[0]
+    window, added = insert_points(window, jnp.asarray(slot, jnp.int32), pad_rows(pixels, n), pad_rows(idepth, n), mask)
+    return window, int(np.asarray(added).sum())
 
 
 def _world_point(images, poses: Pose, camera: PinholeCamera, host, pixel, idepth):

@@ -6,10 +6,12 @@ the triangulated points, and the frame is tracked against it with the blur model
 front-end is the RGB-D pipeline's (``rgbd.RGBDPipeline``: blur-aware tracking, deblurred keyframes,
 plausibility checks, estimated exposure) with depth taken from the window's points instead of a
 sensor; each tracked frame refines the candidate points of the window's keyframes along their
-epipolar lines (``mono.candidates``), and each new keyframe runs the back-end: ready candidates join
+epipolar lines (``mono.candidates``; blur-aware, the sharp keyframes' patterns are blurred along the
+frame's tracked exposure path first), and each new keyframe runs the back-end: ready candidates join
 the window, the windowed photometric bundle adjustment (``mono.ba``) refines poses, affine
 brightness and inverse depths, and the oldest keyframe is marginalised when the window is full.
-After ``reset_after_drops`` drops in a row the system initialises again from the last good pose.
+After ``reset_after_drops`` drops in a row the system initialises again from the last good pose, at
+the lost window's scale.
 """
 
 from __future__ import annotations
@@ -23,18 +25,20 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..deblur import exposure_blur_px
-from ..geometry import ExposureTrajectory, Pose
+from ..geometry import ExposureTrajectory, Pose, interpolate
 from ..image import delinearize, linearize, quantize16
 from ..mono.ba import bundle_adjust, marginalize
-from ..mono.candidates import estimates, ready, select_candidates, trace
+from ..mono.candidates import FrameBlur, activate, select_candidates, trace
 from ..mono.depthmap import filled_depth, project_points, sparse_depth
-from ..mono.init import TwoViewTracker
+from ..mono.init import TwoView, TwoViewTracker
 from ..mono.window import Window, add_keyframe, add_points, world_points
 from ..tracking import Keyframe, Status, track
 from .rgbd import RGBDPipeline
 from .state import Fit, FrameOutcome, KeyframeState, NewKeyframe, RunState
 
 __all__ = ["MonoPipeline", "MonoState", "PointCloud"]
+
+SAMPLING_KEYFRAMES = 3  # window keyframes before frames are sampled for the estimated exposure
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,6 +58,7 @@ class MonoState:
     reference: tuple[float, np.ndarray] | None = None  # (stamp, raw image) the initialiser started from
     tries: int = 0  # frames offered to the initialiser since its reference
     origin: Pose = dataclasses.field(default_factory=Pose.identity)  # the world pose the next initialisation starts at
+    depth: float = 1.0  # the median depth of the next initialisation's points (the world's scale)
     window: Window | None = None
     slots: tuple[int, ...] = ()  # occupied window slots, oldest first
     stamps: tuple[float, ...] = ()  # their keyframes' stamps
@@ -69,9 +74,11 @@ class MonoState:
     def replace(self, **changes) -> "MonoState":
         return dataclasses.replace(self, **changes)
 
-    def restart(self, origin: Pose) -> "MonoState":
-        """Not initialised again, the next start at ``origin`` (the frame clock and counts kept)."""
-        return MonoState(origin=origin, initialisations=self.initialisations, last_stamp=self.last_stamp, frame_dt=self.frame_dt)
+    def restart(self, origin: Pose, depth: float | None = None) -> "MonoState":
+        """Not initialised again, the next start at ``origin`` with its points' median depth ``depth``
+        (None: as before; the frame clock and counts kept)."""
+        return MonoState(origin=origin, depth=self.depth if depth is None else depth, initialisations=self.initialisations,
+                         last_stamp=self.last_stamp, frame_dt=self.frame_dt)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,27 +127,39 @@ class MonoPipeline(RGBDPipeline):
             return self._waiting(state, frame, index, f"initialising: {two_view.reason}")
         return self._start(state, frame, index, two_view)
 
-    def _first_image(self, state: RunState, frame, two_view) -> np.ndarray:
-        """The reference frame as the first keyframe stores it: deblurred along the exposure path that
-        the two-view motion's velocity gives (the estimated or known exposure time), when blurred enough."""
-        cfg, (stamp, raw) = self.config, state.backend.reference
+    def _first_image(self, state: RunState, two_view, path: ExposureTrajectory, rho: float) -> tuple[np.ndarray, bool]:
+        """The reference frame as the first keyframe stores it, and whether it was deblurred: along
+        its exposure ``path`` (about its middle; readout fraction ``rho``) when blurred enough."""
+        cfg, raw = self.config, state.backend.reference[1]
         sparse = np.full(raw.shape, np.nan, np.float32)
         u, v = np.rint(two_view.pixels).astype(int).T
         sparse[v, u] = 1.0 / np.maximum(two_view.idepth, 1e-6)
         depth = filled_depth(sparse)
-        exposure = self.exposure_of(state, frame, state.backend.frame_dt)  # over the frame interval, not the reference's age
-        path, rho = self.velocity_path(two_view.T_ref_cur, frame.timestamp - stamp, exposure)
         if not (cfg.tracker.blur_aware and cfg.odometry.deblur_first_keyframe and np.isfinite(depth).all()
                 and exposure_blur_px(depth, self.camera, path, readout=rho)[0] > cfg.odometry.deblur_min_blur_px):
-            return quantize16(raw)
-        return self.deblurred(raw, depth, path, rho)[0]
+            return quantize16(raw), False
+        return self.deblurred(raw, depth, path, rho)[0], True
+
+    def two_view_path(self, state: RunState, frame, two_view) -> tuple[ExposureTrajectory, float]:
+        """(exposure path about its middle, readout fraction) of the reference and the current frame
+        at the two-view motion's velocity, exposed for the estimated or known exposure time."""
+        exposure = self.exposure_of(state, frame, state.backend.frame_dt)  # over the frame interval, not the reference's age
+        return self.velocity_path(two_view.T_ref_cur, frame.timestamp - state.backend.reference[0], exposure)
+
+    def frame_interval(self, state: RunState, frame) -> float:
+        """The frame interval (s): between the last two frames received (tracked or not), else as the
+        RGB-D pipeline has it (between the last two tracked frames)."""
+        mono = state.backend
+        return mono.frame_dt if mono is not None and mono.frame_dt > 0 else super().frame_interval(state, frame)
 
     def _start(self, state: RunState, frame, index: int, two_view) -> tuple[RunState, FrameOutcome]:
         """The reference frame (deblurred) as the first keyframe of a new window with the triangulated
         points and the candidates that converge in this frame, and this frame tracked against it
         (blur-aware) from the two-view pose."""
         mono, cfg = state.backend, self.config
-        stamp, image = mono.reference[0], self._first_image(state, frame, two_view)
+        two_view = rescaled(two_view, mono.depth)
+        velocity, rho = self.two_view_path(state, frame, two_view)
+        stamp, (image, sharp) = mono.reference[0], self._first_image(state, two_view, velocity, rho)
         window = Window.empty(cfg.mono.window, cfg.mono.points, self.camera.height, self.camera.width)
         window, slot = add_keyframe(window, linearize(image, cfg.tracker.response_gamma), mono.origin)
         window, _ = add_points(window, slot, two_view.pixels, two_view.idepth)
@@ -148,14 +167,16 @@ class MonoPipeline(RGBDPipeline):
         candidates[slot] = select_candidates(linearize(image, cfg.tracker.response_gamma), cfg.mono.candidates, cfg.mono)
         mono = mono.replace(initialiser=None, reference=None, tries=0, window=window, slots=(slot,), stamps=(stamp,),
                             candidates=tuple(candidates), initialisations=mono.initialisations + 1)
-        mono = self._activate(self.traced(mono, frame.image, mono.origin.compose(two_view.T_ref_cur)))
+        T_world_frame = mono.origin.compose(two_view.T_ref_cur)
+        path = velocity.seen_from(T_world_frame) if sharp else None
+        mono = self._activate(self.traced(mono, frame.image, T_world_frame, path=path, readout=rho))
         state = state.replace(backend=mono)
         kf = KeyframeState(self.make_keyframe(state, image, None, mono.origin), mono.origin, stamp)
         state = state.replace(keyframe=kf, mids=((stamp, mono.origin),), keyframes=state.keyframes + 1, fits=(), pending=None,
                               consecutive_drops=0)
         new = NewKeyframe(stamp, mono.origin, image)
-        guess = ExposureTrajectory(two_view.T_ref_cur, two_view.T_ref_cur)
-        result = track(kf.keyframe, frame.image, guess, self.tracker_config(frame, False), readout=self.frame_readout(state, frame))
+        guess = velocity.seen_from(two_view.T_ref_cur)  # the two-view pose, exposed at the two-view velocity
+        result = track(kf.keyframe, frame.image, guess, self.tracker_config(frame, True), readout=rho)
         if not result.status.ok:
             mono = mono.restart(mono.origin)
             state = state.replace(backend=mono, keyframe=None, mids=state.mids[:0], pending=None)
@@ -163,17 +184,38 @@ class MonoPipeline(RGBDPipeline):
         frame = dataclasses.replace(frame, depth=self.frame_depth(state, result.trajectory.middle()))
         stats = self.frame_stats(state, result, None)
         state, outcome = self._tracked(state, frame, index, result, False, Fit(float(result.diagnostics["rms"]), None), stats)
-        state = self._trace(state, frame, outcome)
+        state = self._trace(state.replace(mids=self.one_frame_back(state, stamp)), frame, outcome)
         if outcome.new_keyframe is not None:
             state, outcome = self._backend(state, frame, outcome)
         note = f"initialised: parallax {two_view.parallax_deg:.1f} deg, {len(two_view.idepth)} points"
         return state, dataclasses.replace(outcome, earlier_keyframe=new, note=note)
 
+    def one_frame_back(self, state: RunState, stamp: float) -> tuple:
+        """The recent mid poses after the two-view start, (reference, current frame), with the
+        reference moved along the motion to one frame interval before the current frame, so that the
+        constant-velocity prediction spans one frame interval (its exposure is a fraction of it)."""
+        (_, T_ref), (t_cur, T_cur) = state.mids[-2], state.mids[-1]
+        dt = self.frame_interval(state, None)
+        if not 0.0 < dt < t_cur - stamp:
+            return state.mids
+        s = 1.0 - dt / (t_cur - stamp)
+        return ((t_cur - dt, interpolate(T_ref, T_cur, s)), (t_cur, T_cur))
+
     # ------------------------------------------------------------------------------ tracking
+
+    def exposure_pairing(self, state: RunState, frame, T_w_mid: Pose, speed: float, dt: float):
+        """As the RGB-D pipeline's, but a frame joins the exposure estimate's pairs only once the
+        window holds ``SAMPLING_KEYFRAMES`` keyframes: before, its depth (from the few points of the
+        two-view start) is too coarse to measure blur with, and a wrong early sample pulls the estimate
+        (a median of few samples) far off."""
+        mono = state.backend
+        if mono is None or len(mono.slots) < SAMPLING_KEYFRAMES:
+            return state.recent, None
+        return super().exposure_pairing(state, frame, T_w_mid, speed, dt)
 
     def make_keyframe(self, state: RunState, image, depth, T_world_kf: Pose) -> Keyframe:
         """The tracker's keyframe: its image with the window's points seen from ``T_world_kf``."""
-        x, z, ok = (np.asarray(v) for v in project_points(self.camera, T_world_kf.inverse(), jnp.asarray(self.window_xyz(state.backend))))
+        x, z, ok = project_points(self.camera, T_world_kf.inverse(), self.window_xyz(state.backend))
         return Keyframe.from_points(image, x[ok], z[ok], self.camera, self.config.tracker)
 
     def window_xyz(self, mono: MonoState) -> np.ndarray:
@@ -211,7 +253,9 @@ class MonoPipeline(RGBDPipeline):
         note = ""
         if state.consecutive_drops >= odo.reset_after_drops:
             origin = state.mids[-1][1]
-            state = state.replace(backend=state.backend.restart(origin),
+            depth = self.window_depth(state.backend, origin)
+            depth = float(np.median(depth[np.isfinite(depth)])) if np.isfinite(depth).any() else None  # the next start keeps the scale
+            state = state.replace(backend=state.backend.restart(origin, depth),
                                   keyframe=None, pending=None, consecutive_drops=0, fits=())
             note = f"lost after {odo.reset_after_drops} drops: initialising again"
         status = (result.status if result is not None else Status.TOO_FEW_POINTS).name.lower()
@@ -222,21 +266,30 @@ class MonoPipeline(RGBDPipeline):
 
     def _trace(self, state: RunState, frame, outcome: FrameOutcome) -> RunState:
         """Each window keyframe's candidates searched along their epipolar lines in this frame."""
-        affine = outcome.result.diagnostics.get("affine", [0.0, 0.0]) if outcome.result is not None else [0.0, 0.0]
-        return state.replace(backend=self.traced(state.backend, frame.image, outcome.T_world_mid, affine))
+        diagnostics = outcome.result.diagnostics if outcome.result is not None else {}
+        path = None
+        if self.config.tracker.blur_aware and outcome.T_world_start is not None:  # sharp keyframes, a blurry frame
+            path = ExposureTrajectory(outcome.T_world_start, outcome.T_world_end)
+        return state.replace(backend=self.traced(state.backend, frame.image, outcome.T_world_mid, diagnostics.get("affine", [0.0, 0.0]),
+                                                 path, float(diagnostics.get("readout", 0.0))))
 
-    def traced(self, mono: MonoState, image, T_world_frame: Pose, affine=(0.0, 0.0)) -> MonoState:
+    def traced(self, mono: MonoState, image, T_world_frame: Pose, affine=(0.0, 0.0), path: ExposureTrajectory | None = None,
+               readout: float = 0.0) -> MonoState:
         """``mono`` with each window keyframe's candidates searched along their epipolar lines in
-        ``image`` (display values) seen from ``T_world_frame``."""
+        ``image`` (display values) seen from ``T_world_frame``. ``path``: the frame's exposure path
+        (``T_world_*``, readout fraction ``readout``) when the keyframes are sharp and the frame is
+        blurry: the keyframes' patterns are blurred along it before they are searched for."""
         image = linearize(image, self.config.tracker.response_gamma)
         T_frame_world = T_world_frame.inverse()
         cands = list(mono.candidates)
         for slot in mono.slots:
             if cands[slot] is None:
                 continue
-            T_frame_host = T_frame_world.compose(_slot_pose(mono.window, slot))
-            cands[slot] = trace(cands[slot], mono.window.images[slot], image, self.camera, T_frame_host,
-                                np.asarray(affine, np.float32), self.config.mono)
+            T_world_host = _slot_pose(mono.window, slot)
+            blur = None if path is None else FrameBlur.create(path.seen_from(T_world_host.inverse()), readout,
+                                                              typical_idepth(mono.window, slot))
+            cands[slot] = trace(cands[slot], mono.window.images[slot], image, self.camera, T_frame_world.compose(T_world_host),
+                                np.asarray(affine, np.float32), self.config.mono, blur)
         return mono.replace(candidates=tuple(cands))
 
     def _replace_images(self, mono: MonoState, images) -> MonoState:
@@ -254,14 +307,8 @@ class MonoPipeline(RGBDPipeline):
         window, cands = mono.window, list(mono.candidates)
         for slot in reversed(mono.slots):  # the newest keyframes' points first
             c = cands[slot]
-            if c is None:
-                continue
-            mask = np.asarray(ready(c, self.config.mono))
-            if not mask.any():
-                continue
-            pixels, idepth = (np.asarray(v) for v in estimates(c))
-            window, added = add_points(window, slot, pixels[mask], idepth[mask])
-            cands[slot] = _consume(c, np.flatnonzero(mask)[:added])
+            if c is not None:
+                window, cands[slot] = activate(window, jnp.asarray(slot, jnp.int32), c, self.config.mono)
         return mono.replace(window=window, candidates=tuple(cands))
 
     def _backend(self, state: RunState, frame, outcome: FrameOutcome) -> tuple[RunState, FrameOutcome]:
@@ -315,12 +362,22 @@ class MonoPipeline(RGBDPipeline):
         return self.slot_points(mono) if mono is not None and mono.initialised else None
 
 
+def rescaled(two_view: TwoView, depth: float) -> TwoView:
+    """A two-view start (median point depth 1) scaled to median depth ``depth``."""
+    if depth == 1.0:
+        return two_view
+    T = two_view.T_ref_cur
+    return dataclasses.replace(two_view, T_ref_cur=Pose(T.q, T.t * depth), idepth=(two_view.idepth / depth).astype(np.float32))
+
+
+def typical_idepth(window: Window, slot: int) -> float:
+    """The median inverse depth of the window's points hosted by ``slot`` (of all its points when it
+    hosts none; 0 when there are none)."""
+    valid, idepth = np.asarray(window.point_valid), np.asarray(window.idepth)
+    own = valid & (np.asarray(window.host) == slot)
+    use = own if own.any() else valid
+    return float(np.median(idepth[use])) if use.any() else 0.0
+
+
 def _slot_pose(window: Window, slot: int) -> Pose:
     return Pose(window.poses.q[slot], window.poses.t[slot])
-
-
-def _consume(c, used: np.ndarray):
-    """Candidates ``used`` (indices) marked invalid: they are points of the window now."""
-    valid = np.asarray(c.valid).copy()
-    valid[used] = False
-    return eqx.tree_at(lambda x: x.valid, c, jnp.asarray(valid))

@@ -49,9 +49,16 @@ def call_limited(fn: Callable, env: dict[str, str], item) -> Any:
     return fn(item)
 
 
+def _alone(queue, running: dict, tries) -> bool:
+    """Whether the next item, or one in flight, is a retry: retries run alone, so that a worker that
+    dies again breaks no other item's pool."""
+    return tries[queue[0][0]] > 0 or any(tries[i] > 0 for i, _ in running.values())
+
+
 def _local(fn, items: list, jobs: int, env: dict, fallback) -> Iterator[tuple[int, Any]]:
     """At most ``jobs`` items in flight on a spawn process pool; a pool broken by a dying worker
-    is replaced and its in-flight items queued again (at the end), up to MAX_TRIES each."""
+    is replaced and its in-flight items queued again (at the end), up to MAX_TRIES each, each retry
+    alone in the pool."""
     import multiprocessing
 
     queue, tries = collections.deque(enumerate(items)), collections.Counter()
@@ -59,7 +66,7 @@ def _local(fn, items: list, jobs: int, env: dict, fallback) -> Iterator[tuple[in
         with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
             running, broken = {}, False
             while running or (queue and not broken):
-                while queue and not broken and len(running) < jobs:
+                while queue and not broken and len(running) < jobs and not (running and _alone(queue, running, tries)):
                     i, item = queue.popleft()
                     running[pool.submit(call_limited, fn, env, item)] = (i, item)
                 done, _ = wait(running, return_when=FIRST_COMPLETED)

@@ -21,7 +21,7 @@ from jaxtyping import Array, Bool, Float
 
 from ..geometry import quaternion as quat
 from ..geometry.camera import PinholeCamera
-from ..geometry.spline import ExposurePath
+from ..geometry.spline import ExposurePath, SplineTrajectory
 from ..geometry.trajectory import ExposureTrajectory, RowClock
 from ..masked import count, masked_mean
 from .geometric import depth_residuals
@@ -29,7 +29,7 @@ from .points import PATTERN
 from .residuals import LevelProblem, make_residual_fn, residuals_and_jacobian, robust
 
 __all__ = ["LevelInputs", "LevelSettings", "Parametrization", "ExposurePrior", "DepthTerm", "LevelObjective", "LevelResult",
-           "residual_pixels", "photometric_residuals", "depth_residuals_block", "exposure_prior_residuals", "solve_level",
+           "CurvaturePrior", "control_steps", "curvature_residuals", "residual_pixels", "photometric_residuals", "depth_residuals_block", "exposure_prior_residuals", "solve_level",
            "compiled_programs"]
 
 _TRACES = {"solve_level": 0}
@@ -63,6 +63,7 @@ class LevelSettings(eqx.Module):
     outlier_sigma: Float[Array, ""]
     rtol: Float[Array, ""]
     atol: Float[Array, ""]
+    curvature_sigma: Float[Array, ""]  # a cubic path's curvature prior (radians; 0 = off)
     n: int = eqx.field(static=True)
     jacobian: str = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
@@ -70,6 +71,7 @@ class LevelSettings(eqx.Module):
     affine: bool = eqx.field(static=True)
     use_outliers: bool = eqx.field(static=True)
     rolling: bool = eqx.field(static=True, default=False)  # per-row virtual poses (readout fraction > 0)
+    curved: bool = eqx.field(static=True, default=False)  # a cubic path's curvature prior is on
 
 
 class Parametrization(eqx.Module):
@@ -105,6 +107,15 @@ class ExposurePrior(eqx.Module):
     weight: Float[Array, ""]
 
 
+class CurvaturePrior(eqx.Module):
+    """Gaussian prior on a cubic path's bend: residual weight · scale · (v_{j+1} − v_j), v_j = [log of
+    control j⁻¹·j+1 rotation, translation step] (zero on a constant-velocity path), translation
+    scaled by 1/median depth as in :class:`ExposurePrior`."""
+
+    scale: Float[Array, "6"]
+    weight: Float[Array, ""]
+
+
 class DepthTerm(eqx.Module):
     """The optional RGB-D residuals of one level (``tracking.geometric``) and their weights."""
 
@@ -127,6 +138,7 @@ class LevelObjective(eqx.Module):
     huber: Float[Array, ""]
     prior: ExposurePrior | None
     depth: DepthTerm | None
+    curvature: CurvaturePrior | None = None
 
 
 class LevelResult(eqx.Module):
@@ -201,6 +213,19 @@ def exposure_prior_residuals(traj: ExposurePath, prior: ExposurePrior) -> Float[
     return prior.weight * prior.scale * (exposure_motion(traj) - prior.blur0)
 
 
+def control_steps(path: SplineTrajectory) -> Float[Array, "3 6"]:
+    """v_j = [log(q_j⁻¹ q_{j+1}), t_{j+1} − t_j] between a cubic path's consecutive control poses."""
+    q, t = path.controls.q, path.controls.t
+    rot = jax.vmap(lambda a, b: quat.log(quat.product(quat.inverse(a), b)))(q[:3], q[1:])
+    return jnp.concatenate([rot, t[1:] - t[:3]], axis=1)
+
+
+def curvature_residuals(path: SplineTrajectory, prior: CurvaturePrior) -> Float[Array, "12"]:
+    """The curvature prior's residuals: the two second differences of the control steps, weighted."""
+    v = control_steps(path)
+    return (prior.weight * prior.scale * (v[1:] - v[:2])).reshape(-1)
+
+
 def objective(z, obj: LevelObjective):
     """The level's least-squares function: the residual blocks stacked."""
     y = obj.param.expand(z)
@@ -210,6 +235,8 @@ def objective(z, obj: LevelObjective):
         parts.append(depth_residuals_block(traj, obj.problem.camera, obj.depth))
     if obj.prior is not None:
         parts.append(exposure_prior_residuals(traj, obj.prior))
+    if obj.curvature is not None:
+        parts.append(curvature_residuals(traj, obj.curvature))
     return jnp.concatenate(parts) if len(parts) > 1 else parts[0]
 
 
@@ -250,8 +277,11 @@ def solve_level(level: LevelInputs, settings: LevelSettings, prior: tuple | None
     if settings.use_outliers:
         problem = reject_outlier_patches(problem, param.expand(z0), settings.outlier_sigma)
     prior_term = None if prior is None else make_prior(level, problem, *prior)
-    obj = LevelObjective(problem, param, settings.huber, prior_term, depth)
-    solver = optx.LevenbergMarquardt(rtol=settings.rtol, atol=settings.atol, norm=optx.rms_norm, linear_solver=lx.QR())
+    curvature = None
+    if prior is not None and isinstance(level.anchor, SplineTrajectory) and settings.curved:
+        curvature = CurvaturePrior(prior_term.scale, prior[1] / settings.curvature_sigma * jnp.sqrt(count(problem.mask, d.dtype)))
+    obj = LevelObjective(problem, param, settings.huber, prior_term, depth, curvature)
+    solver = optx.LevenbergMarquardt(rtol=settings.rtol, atol=settings.atol, norm=optx.rms_norm, linear_solver=lx.Normal(lx.Cholesky()))
     sol = optx.least_squares(objective, solver, z0, args=obj, max_steps=settings.max_steps, throw=False)
     y = param.expand(sol.value)
     rms, rms0, nrms, nvalid = _summary(problem, y, param.expand(z0))

@@ -169,9 +169,11 @@ def _level_settings(config: TrackerConfig, level: int, n: int, rolling: bool = F
     """A level's solver settings, built (and copied to the device) once per config, level, n and
     shutter model (``rolling``: per-row virtual poses)."""
     f = lambda v: jnp.float32(v)
-    return LevelSettings(f(config.huber), f(config.outlier_sigma), f(config.rtol), f(config.atol), n=n, jacobian=config.jacobian,
+    return LevelSettings(f(config.huber), f(config.outlier_sigma), f(config.rtol), f(config.atol),
+                         f(max(config.curvature_prior_rad, 1e-12)), n=n, jacobian=config.jacobian,
                          max_steps=config.max_steps[level], rigid=not config.blur_aware, affine=config.affine,
-                         use_outliers=level < config.levels - 1 and config.outlier_sigma > 0, rolling=rolling)
+                         use_outliers=level < config.levels - 1 and config.outlier_sigma > 0, rolling=rolling,
+                         curved=config.trajectory == "cubic" and config.curvature_prior_rad > 0)
 
 
 @functools.lru_cache(maxsize=256)

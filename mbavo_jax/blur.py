@@ -33,7 +33,7 @@ from .geometry.trajectory import ExposureTrajectory, row_times, virtual_times
 from .geometry.transfer import plane_point, plane_transfer
 from .image import bilinear_with_gradient
 
-__all__ = ["virtual_pq", "virtual_pq_table", "virtual_sample", "synthesize", "reblur", "render_blurry",
+__all__ = ["virtual_pq", "virtual_pq_table", "virtual_sample", "per_pixel_poses", "synthesize", "blend", "reblur", "render_blurry",
            "plane_depths_from_keyframe", "blur_lengths", "round_up_pow2"]
 
 RENDER_CHUNK = 4096  # pixels per chunk of ``render_blurry`` (n x chunk samples live at once)
@@ -91,6 +91,12 @@ def synthesize(
     samples are (invalid pixels are 0)."""
     sample = lambda pq, ray, d: virtual_sample(image, camera, pq, ray, d)
     values, _, _, ok = per_pixel_poses(sample, pqs, rows, rays, depths)  # (n, R)
+    return blend(values, ok)
+
+
+def blend(values: Float[Array, "n R"], ok: Bool[Array, "n R"]) -> tuple[Float[Array, " R"], Bool[Array, " R"]]:
+    """Eq. 6 from the n virtual samples of each pixel: their mean, valid only if all n samples are
+    (invalid pixels are 0)."""
     valid = jnp.all(ok, axis=0)
     return jnp.where(valid, jnp.mean(values, axis=0), 0.0), valid
 

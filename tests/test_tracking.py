@@ -10,6 +10,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import pytest
 
@@ -20,7 +21,7 @@ from mbavo_jax.synthetic import SynthConfig, generate_sequence
 from mbavo_jax.synthetic.generator import PRESETS
 from mbavo_jax.config import TrackerConfig
 from mbavo_jax.tracking import Keyframe, Status, choose_n, compiled_programs, constant_velocity_guess, exposure_from_velocity, track
-from mbavo_jax.tracking.level import residual_pixels
+from mbavo_jax.tracking.level import LINEAR_SOLVER, residual_pixels
 from mbavo_jax.tracking.residuals import LevelProblem, make_residual_fn, residuals_and_jacobian
 
 SMALL = TrackerConfig(levels=3, points=(192, 128, 64), cell=(10, 7, 5), response_gamma=2.2, max_steps=(10, 12, 20))
@@ -95,12 +96,31 @@ def test_structured_jacobians_match_plain_autodiff(strong):
             r, J, valid = residuals_and_jacobian(y, prob, True)
             assert int(valid.sum()) > 200
             np.testing.assert_allclose(J, plain, atol=1e-8, rtol=1e-6)
+            # the one pass that gives J gives the same residuals as the residual-only pass
+            r_only, _, valid_only = residuals_and_jacobian(y, prob, False)
+            np.testing.assert_array_equal(valid, valid_only)
+            np.testing.assert_allclose(r, r_only, atol=1e-12)
             # the custom JVP is what optimistix's linearize sees
             f = make_residual_fn()
             _, lin = jax.linearize(lambda yy: f(yy, prob), y)
             np.testing.assert_allclose(jax.vmap(lin)(jnp.eye(14)).T, J, atol=1e-10)
             ref = J if ref is None else ref
             np.testing.assert_allclose(J, ref, atol=1e-8, rtol=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("lam", [1e-6, 1.0, 1e3])
+def test_lm_linear_solver_matches_float64_least_squares(strong, lam):
+    """The LM step from the level's linear solver (normal equations, Cholesky, float32) on a real
+    Jacobian equals the float64 least-squares solution of [J; √λ I] δ = [r; 0]."""
+    prob = _problem(strong, "analytic", n=16)
+    r, J, valid = residuals_and_jacobian(jnp.zeros(14, jnp.float32), prob, True)
+    assert int(valid.sum()) > 200
+    A = jnp.concatenate([J, np.float32(np.sqrt(lam)) * jnp.eye(14, dtype=J.dtype)])
+    b = jnp.concatenate([r, jnp.zeros(14, r.dtype)])
+    step = lx.linear_solve(lx.MatrixLinearOperator(A), b, LINEAR_SOLVER).value
+    ref = np.linalg.lstsq(np.asarray(A, np.float64), np.asarray(b, np.float64), rcond=None)[0]
+    assert np.linalg.norm(np.asarray(step, np.float64) - ref) <= 1e-4 * np.linalg.norm(ref)
 
 
 @pytest.mark.slow

@@ -34,6 +34,12 @@ __all__ = ["LevelInputs", "LevelSettings", "Parametrization", "ExposurePrior", "
 
 _TRACES = {"solve_level": 0}
 
+# The damped Gauss-Newton step [J; √λ I] δ = [r; 0] by its normal equations (JᵀJ + λI) δ = Jᵀr and
+# Cholesky: a k x k system (k ≤ 26 unknowns) instead of LAPACK's QR of the R x k matrix, whose
+# threaded CPU kernel costs far more than the whole residual evaluation. A stiff curvature prior
+# (rows ~1e5 x the photometric ones) makes JᵀJ singular in float32: that solve keeps QR.
+LINEAR_SOLVER = lx.Normal(lx.Cholesky())
+
 
 def compiled_programs() -> int:
     """How many level programs the tracker has compiled in this process (one per new signature)."""
@@ -265,7 +271,7 @@ def _summary(problem: LevelProblem, y, y0) -> tuple:
 
 @jax.jit
 def solve_level(level: LevelInputs, settings: LevelSettings, prior: tuple | None, depth: DepthTerm | None) -> LevelResult:
-    """One level's LM solve (optimistix, RMS termination norm, QR). ``prior``: None (rigid) or
+    """One level's LM solve (optimistix, RMS termination norm, :data:`LINEAR_SOLVER`). ``prior``: None (rigid) or
     (b₀, σ_I, min_rad, rel) of :func:`make_prior`."""
     _TRACES["solve_level"] += 1  # runs once per compiled signature
     rays, d, observed, mask, rows = residual_pixels(level.camera, level.cur_image, level.pixels, level.depths, level.valid, level.anchor)
@@ -281,7 +287,7 @@ def solve_level(level: LevelInputs, settings: LevelSettings, prior: tuple | None
     if prior is not None and isinstance(level.anchor, SplineTrajectory) and settings.curved:
         curvature = CurvaturePrior(prior_term.scale, prior[1] / settings.curvature_sigma * jnp.sqrt(count(problem.mask, d.dtype)))
     obj = LevelObjective(problem, param, settings.huber, prior_term, depth, curvature)
-    solver = optx.LevenbergMarquardt(rtol=settings.rtol, atol=settings.atol, norm=optx.rms_norm, linear_solver=lx.Normal(lx.Cholesky()))
+    solver = optx.LevenbergMarquardt(rtol=settings.rtol, atol=settings.atol, norm=optx.rms_norm, linear_solver=lx.QR() if curvature is not None else LINEAR_SOLVER)
     sol = optx.least_squares(objective, solver, z0, args=obj, max_steps=settings.max_steps, throw=False)
     y = param.expand(sol.value)
     rms, rms0, nrms, nvalid = _summary(problem, y, param.expand(z0))

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ..blur import per_pixel_poses, synthesize, virtual_pq, virtual_pq_table, virtual_sample
+from ..blur import blend, per_pixel_poses, synthesize, virtual_pq, virtual_pq_table, virtual_sample
 from ..geometry import quaternion as quat
 from ..geometry.camera import PinholeCamera
 from ..geometry.spline import SplineTrajectory
@@ -102,23 +102,35 @@ def chain_rows(G: Float[Array, "n R 7"], M: Float[Array, "B n 7 k"], rows: Int[A
     return jax.vmap(lambda g, b: jnp.einsum("nj,njk->k", g, M[b]), in_axes=(1, 0))(G, rows)
 
 
-def _g_autodiff(problem: LevelProblem, pq, ray, d):
-    """g_i = ∂v_i/∂(p, q̄) by ``jax.jacfwd`` of the per-sample function (1 x 7)."""
-    f = lambda x: _sample(problem, x, ray, d)[0]
-    return jax.jacfwd(f)(pq)
+def _sample_autodiff(problem: LevelProblem, pq, ray, d):
+    """(v_i, g_i = ∂v_i/∂(p, q̄) by ``jax.jacfwd`` of the per-sample function (7,), valid)."""
+    def f(x):
+        value, _, _, ok = _sample(problem, x, ray, d)
+        return value, (value, ok)
+
+    g, (value, ok) = jax.jacfwd(f, has_aux=True)(pq)
+    return value, g, ok
 
 
-def _g_analytic(problem: LevelProblem, pq, ray, d):
-    """g_i = ∇I · Eq. 85 · Eqs. 78-84 (corrected)."""
-    _, grad, p_ref, valid = _sample(problem, pq, ray, d)
+def _sample_analytic(problem: LevelProblem, pq, ray, d):
+    """(v_i, g_i = ∇I · Eq. 85 · Eqs. 78-84 (corrected) (7,), valid) from one bilinear sample."""
+    value, grad, p_ref, ok = _sample(problem, pq, ray, d)
     dproj = pj.projection_jacobian(problem.camera.fx, problem.camera.fy, p_ref)  # 2 x 3
     dp = pj.transfer_jacobian_corrected(pq[3:], pq[:3], ray, d)  # 3 x 7
-    return jnp.where(valid, grad @ dproj @ dp, 0.0)
+    w = grad[0] * dproj[0] + grad[1] * dproj[1]  # ∇I · Eq. 85 (3,), elementwise: fuses under vmap
+    return value, jnp.where(ok, w @ dp, 0.0), ok
+
+
+def _jacobian(problem: LevelProblem, yk, G: Float[Array, "n R 7"], rows, gain) -> Float[Array, "R k"]:
+    """∂r/∂y_k = e^a / n · Σ_i g_i · M_{b,i} (M analytic for a straight path with the analytic path)."""
+    analytic = problem.jacobian == "analytic" and isinstance(problem.anchor, ExposureTrajectory)
+    M = _M_analytic(problem, yk) if analytic else _M_autodiff(problem, yk)
+    return (gain / problem.n) * chain_rows(G, M, rows)
 
 
 def residuals_and_jacobian(y: Float[Array, " Y"], problem: LevelProblem, with_jacobian: bool = True):
     """Residuals r (R,) at y = [Δstart (6), Δend (6), a, b] (a spline: [Δcontrols (24), a, b]) and,
-    optionally, J = ∂r/∂y (R, k + 2).
+    optionally, J = ∂r/∂y (R, k + 2), both from one pass over the n x R virtual samples.
 
     Invalid residuals (a sample outside the keyframe, a ray missing the plane, masked pixels) are 0
     with zero Jacobian rows. Also returns the per-residual validity.
@@ -126,20 +138,19 @@ def residuals_and_jacobian(y: Float[Array, " Y"], problem: LevelProblem, with_ja
     k = problem.anchor.dof
     yk, a, b = y[:k], y[k], y[k + 1]
     pqs, rows = _pose_table(problem, yk), _rows(problem)  # (B, n, 7), (R,)
-    synth, ok = synthesize(problem.ref_image, problem.camera, pqs, problem.rays, problem.depths, rows)
-    valid = problem.mask & ok
     gain = jnp.exp(a)
+    if not with_jacobian:
+        synth, ok = synthesize(problem.ref_image, problem.camera, pqs, problem.rays, problem.depths, rows)
+    else:
+        sample = _sample_analytic if problem.jacobian == "analytic" else _sample_autodiff
+        values, G, oks = per_pixel_poses(lambda pq, ray, d: sample(problem, pq, ray, d), pqs, rows, problem.rays, problem.depths)
+        synth, ok = blend(values, oks)  # values, oks, G: (n, R, ...)
+    valid = problem.mask & ok
     r = jnp.where(valid, gain * synth + b - problem.observed, 0.0)
     if not with_jacobian:
         return r, None, valid
-    analytic = problem.jacobian == "analytic"
-    g = _g_analytic if analytic else _g_autodiff
-    G = per_pixel_poses(lambda pq, ray, d: g(problem, pq, ray, d), pqs, rows, problem.rays, problem.depths)  # (n, R, 7)
-    M = _M_analytic(problem, yk) if analytic and isinstance(problem.anchor, ExposureTrajectory) else _M_autodiff(problem, yk)
-    J12 = (gain / problem.n) * chain_rows(G, M, rows)
-    J = jnp.concatenate([J12, (gain * synth)[:, None], jnp.ones_like(synth)[:, None]], axis=1)
-    J = jnp.where(valid[:, None], J, 0.0)
-    return r, J, valid
+    J = jnp.concatenate([_jacobian(problem, yk, G, rows, gain), (gain * synth)[:, None], jnp.ones_like(synth)[:, None]], axis=1)
+    return r, jnp.where(valid[:, None], J, 0.0), valid
 
 
 def make_residual_fn():

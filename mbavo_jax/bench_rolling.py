@@ -152,10 +152,11 @@ def _tracked_only(est: tuple, run: pathlib.Path) -> tuple:
     """The exposure paths of ``est`` (stamps first) whose frames the tracker estimated (frames.csv
     status converged or max_steps): a keyframe started without tracking (the first frame, a reset)
     has a placeholder path (start = end) that no method estimated."""
+    from .evaluation import associate
     from .odometry.folder import committed_rows
 
-    tracked = np.asarray([float(r["timestamp"]) for r in committed_rows(run) if r["status"] in ("converged", "max_steps")])
-    keep = np.asarray([bool(len(tracked)) and bool(np.min(np.abs(tracked - t)) < 1e-6) for t in est[0]], bool)
+    tracked = [float(r["timestamp"]) for r in committed_rows(run) if r["status"] in ("converged", "max_steps")]
+    keep, _ = associate(est[0], np.sort(tracked), max_diff=1e-6)
     return tuple(np.asarray(a)[keep] for a in est)
 
 
@@ -197,11 +198,9 @@ def call_cost(seq, pairs: int = 6) -> dict:
             _, _, diag = track(kf, frame.image, init, cfg, readout=readout_fraction(cfg.readout_s, tau))
             ms[m].append(1000 * (time.perf_counter() - t0))
             steps[m].append(sum(level["steps"] for level in diag["levels"]))
-    out = {}
-    for m in configs:
-        call, step = np.asarray(ms[m][1:] or ms[m]), np.asarray(ms[m][1:] or ms[m]) / np.maximum(steps[m][1:] or steps[m], 1)
-        out[m] = {"ms_per_call": float(np.median(call)), "ms_per_lm_step": float(np.median(step)),
-                  "lm_steps": float(np.median(steps[m][1:] or steps[m]))}
+    warm = lambda xs: np.asarray(xs[1:] or xs, float)  # noqa: E731 - the first pair compiles
+    out = {m: {"ms_per_call": float(np.median(warm(ms[m]))), "ms_per_lm_step": float(np.median(warm(ms[m]) / np.maximum(warm(steps[m]), 1))),
+               "lm_steps": float(np.median(warm(steps[m])))} for m in configs}
     out["call_ratio"] = out["rs"]["ms_per_call"] / out["blur"]["ms_per_call"]
     out["step_ratio"] = out["rs"]["ms_per_lm_step"] / out["blur"]["ms_per_lm_step"]
     return out

@@ -186,7 +186,7 @@ def test_curvature_prior_is_zero_on_straight_paths_and_straightens_the_fit():
     kf = Keyframe.create(img, depth, cam, SMALL)
     blurry, _ = render(img, cam, depth, gt, 64, RHO)
     res = track(kf, blurry, INIT, dataclasses.replace(SMALL, trajectory="cubic", curvature_prior_rad=1e-6), readout=RHO)
-    assert res.status != Status.DIVERGED, res.status  # a straight path may not explain the bent frame: LOST is allowed
+    assert res.status.ok, res.status
     bend, true_bend = (float(jnp.linalg.norm(curvature_residuals(p, unit))) for p in (res.trajectory, gt))
     assert bend < 0.05 * true_bend, (bend, true_bend)  # test_cubic_recovers_a_curved_rolling_shutter_path: free, it follows the bend
 

@@ -273,9 +273,10 @@ def format_tracking_table(s: dict) -> str:
 
 
 def bench_data(preset: str, cfg: BenchConfig, frames: int, quiet: bool = False, depth_model: str = "exact",
-                scene: str = "room") -> pathlib.Path:
+                scene: str = "room", exact: bool = False) -> pathlib.Path:
     """The generated sequence of a preset (``runs/bench_<preset>[_<scene>]_<w>x<h>_seed<s>[_sensor]``),
-    made again when missing, shorter than ``frames`` or older than the depth noise record in camera.yaml."""
+    made again when missing, shorter than ``frames`` (``exact``: of another length, for benchmarks that
+    run the whole folder) or older than the depth noise record in camera.yaml."""
     from .synthetic import generate_sequence
 
     if preset not in PRESETS:
@@ -284,7 +285,7 @@ def bench_data(preset: str, cfg: BenchConfig, frames: int, quiet: bool = False, 
     label = preset if scene == "room" else f"{preset}_{scene}"
     data = pathlib.Path("runs") / f"bench_{label}_{cfg.width}x{cfg.height}_seed{cfg.seed}{suffix}"
     seq = open_sequence(data) if (data / "exposure.txt").is_file() else None
-    if seq is None or len(seq) < frames or "depth_sigma" not in seq.meta:
+    if seq is None or len(seq) < frames or (exact and len(seq) != frames) or "depth_sigma" not in seq.meta:
         synth = SynthConfig(**{**PRESETS[preset], "frames": frames, "width": cfg.width, "height": cfg.height, "seed": cfg.seed,
                                "depth_model": depth_model, "scene": scene})
         generate_sequence(synth, data, progress=not quiet)
@@ -562,12 +563,12 @@ def main_odometry(cfg: BenchConfig, fmt: str = "table", quiet: bool = False, set
     methods = parse_methods(cfg.methods, cfg.no_peers)
     seqs = {}
     for preset in filter(None, cfg.presets.split(",")):
-        seqs[preset] = bench_data(preset, cfg, cfg.frames, quiet)
+        seqs[preset] = bench_data(preset, cfg, cfg.frames, quiet, exact=True)
     for preset in filter(None, cfg.sensor_presets.split(",")):
-        seqs[f"{preset}_sensor"] = bench_data(preset, cfg, cfg.frames, quiet, depth_model="sensor")
+        seqs[f"{preset}_sensor"] = bench_data(preset, cfg, cfg.frames, quiet, depth_model="sensor", exact=True)
     for scene in filter(None, cfg.scenes.split(",")):
         for preset in filter(None, cfg.scene_presets.split(",")):
-            seqs[f"{preset}_{scene}"] = bench_data(preset, cfg, cfg.frames, quiet, scene=scene)
+            seqs[f"{preset}_{scene}"] = bench_data(preset, cfg, cfg.frames, quiet, scene=scene, exact=True)
     if cfg.tum:
         seqs["tum_blurred"] = tum_blurred(cfg, quiet)
     seqs = with_hidden_exposure(seqs, cfg.hide_exposure)

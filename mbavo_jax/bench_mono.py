@@ -136,7 +136,7 @@ def main_mono(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
     mono methods), KITTI 07 and the TUM clip sharp and blurred."""
     from .bench import bench_data, with_hidden_exposure, tum_blurred
 
-    seqs = {p: bench_data(p, cfg, cfg.frames, quiet) for p in cfg.presets.split(",") if p}
+    seqs = {p: bench_data(p, cfg, cfg.frames, quiet, exact=True) for p in cfg.presets.split(",") if p}
     seqs = {k: v for k, v in with_hidden_exposure(seqs, "all").items() if k.endswith("_noexp")}
     if cfg.kitti:
         seqs["kitti07"] = pathlib.Path(cfg.kitti)

@@ -259,6 +259,14 @@ class OdometryConfig(Settings):
     exposure_window: int = setting(30, "estimated exposure: weighted median over this many recent samples", AT_LEAST_1)
     exposure_pair_ratio: float = setting(1.3, "estimated exposure: a sample pairs two raw frames whose speeds differ by this factor", at_least(1.05))
     exposure_pair_frames: int = setting(6, "estimated exposure: a frame is paired with one of this many recent frames", AT_LEAST_1)
+    short_exposure: float = setting(0.25, "a frame exposed for at most this fraction of the frame interval (known, or estimated and "
+                                    "settled), with a velocity to predict its blur, is tracked with adaptive n (tracker.n_mode)", FRACTION)
+    exposure_settled: float = setting(0.05, "estimated exposure: settled when it moved by at most this fraction of the frame interval "
+                                      "over its last 6 samples; then only every exposure_thin-th tracked frame is paired", FRACTION)
+    exposure_thin: int = setting(8, "see exposure_settled (1: every frame is paired)", AT_LEAST_1)
+    exposure_probe: int = setting(8, "estimated exposure: the first frames run once before the run (nothing written; only the first "
+                                  "keyframe deblurred), so that the run's first keyframes are deblurred along an estimate, not the "
+                                  "guess (0 = off)", NONNEG)
     reject_rms_ratio: float = setting(2.5, "a tracked frame whose residual RMS exceeds this multiple of the largest of the recent "
                                       "frames' is dropped as implausible (0 = off)", NONNEG)
     reject_jump_ratio: float = setting(4.0, "... or whose pose lies further from the constant-velocity prediction than this multiple "

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 
 import numpy as np
@@ -16,6 +17,7 @@ from mbavo_jax.evaluation import exposure_path_error, exposure_path_lengths
 from mbavo_jax.geometry import Pose
 from mbavo_jax.io import read_exposure_file
 from mbavo_jax.odometry import ExposureEstimate, RawFrame, exposure_mode, pick_pair, run_odometry
+from mbavo_jax.odometry.rgbd import RGBDPipeline
 from mbavo_jax.synthetic import PRESETS, SynthConfig, exposure_hidden_copy, generate_sequence
 
 SMALL_SET = ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]"]
@@ -57,6 +59,16 @@ def test_estimate_is_the_weighted_median_of_recent_samples():
     assert est.fraction() == pytest.approx(0.030 / 0.033)
     est = est.add((0.012, 1.0), 0.033).add((0.014, 1.0), 0.033).add((0.016, 1.0), 0.033)
     assert est.count == 3 and est.seconds(1.0) == pytest.approx(0.014)  # only the window counts
+
+
+def test_estimate_settles_when_it_stops_moving():
+    est = ExposureEstimate(guess=0.5, window=30)
+    for e in (0.020, 0.024, 0.021, 0.022, 0.023, 0.0215):
+        est = est.add((e, 1.0), 0.04)
+    # the estimate after each sample, as fractions of 0.04 s: 0.5, 0.5, 0.525, 0.525, 0.55, 0.5375
+    assert not est.settled(7, 1.0)  # too few samples
+    assert est.settled(6, 0.05) and not est.settled(6, 0.04)
+    assert est.settled(4, 0.03) and not est.settled(5, 0.03)
 
 
 def test_pairs_need_speeds_that_differ_enough():
@@ -102,6 +114,57 @@ def test_blurred_sequence_without_exposure_times_recovers_the_exposure(strong, t
     assert np.all(lengths[1:] > 0.3), lengths  # start != end on every blurred frame after the first
     ratio = exposure_path_error(seq.exposure_paths, est, _camera(seq))["length_ratio"]["median"]
     assert 0.5 < ratio < 1.5, ratio
+
+
+@pytest.mark.slow
+def test_probe_starts_the_run_from_an_estimate_not_the_guess(strong, tmp_path):
+    """With the exposure estimated, the first frames are run once beforehand (nothing written): the
+    run starts from their estimate (true fraction 0.75, the guess 0.5) and reports it on frame 0."""
+    path, cfg = strong
+    seq = open_sequence(exposure_hidden_copy(path, tmp_path / "hidden"))
+    config = load_config(None, SMALL_SET)
+    start = RGBDPipeline(seq.camera, config).start_state(seq)
+    true_fraction = cfg.exposure_ms / 1000 * cfg.fps
+    assert start.exposure is not None and start.exposure.count == 0 and start.tracked == 0
+    assert abs(start.exposure.guess - true_fraction) <= 0.2 * true_fraction, start.exposure
+    assert RGBDPipeline(seq.camera, load_config(None, [*SMALL_SET, "odometry.exposure_probe=0"])).start_state(seq).exposure is None
+    assert RGBDPipeline(seq.camera, config).start_state(open_sequence(path)).exposure is None  # exposure known: no probe
+    run_odometry(seq, tmp_path / "run", config, max_frames=2, progress=False)
+    with open(tmp_path / "run" / "frames.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2 and float(rows[0]["exposure_fraction"]) == pytest.approx(start.exposure.guess, abs=1e-4)
+
+
+def test_a_settled_short_exposure_picks_adaptive_n_and_thins_the_samples():
+    """Once the estimate has settled on a short exposure, frames predicted by a velocity are tracked
+    with adaptive n (few virtual frames for little blur) and only every ``exposure_thin``-th tracked
+    frame is paired; a known short exposure picks adaptive n too; a long or unsettled one does not."""
+    from types import SimpleNamespace
+
+    from mbavo_jax.geometry import PinholeCamera
+    from mbavo_jax.odometry.state import RunState
+
+    config = load_config(None, [])
+    pipe = RGBDPipeline(PinholeCamera.create(100.0, 100.0, 50.0, 40.0, 100, 80), config)
+    mids = ((1.0, Pose.identity()), (1.04, Pose.identity()))
+    frame = SimpleNamespace(timestamp=1.08, exposure=None)
+
+    def state(*fractions):
+        est = ExposureEstimate(0.5, 30)
+        for f in fractions:
+            est = est.add((f * 0.04, 1.0), 0.04)
+        return RunState(mids=mids, exposure=est, tracked=9)
+
+    short, unsettled, long = state(*[0.02] * 6), state(0.4, 0.01, 0.02, 0.01, 0.3, 0.02), state(*[0.7] * 6)
+    assert pipe.tracker_config(frame, True, short).n_mode == "adaptive"
+    assert pipe.tracker_config(frame, True, unsettled).n_mode == "fixed"
+    assert pipe.tracker_config(frame, True, long).n_mode == "fixed"
+    assert pipe.tracker_config(frame, False, short).blur_prior == 0  # no velocity: the prior is off, n as configured
+    assert pipe.tracker_config(frame, False, short).n_mode == "fixed"
+    assert pipe.tracker_config(SimpleNamespace(timestamp=1.08, exposure=0.0), True, RunState(mids=mids)).n_mode == "adaptive"
+    assert pipe.tracker_config(SimpleNamespace(timestamp=1.08, exposure=0.03), True, RunState(mids=mids)).n_mode == "fixed"
+    assert not pipe.sample_due(short) and pipe.sample_due(dataclasses.replace(short, tracked=16))
+    assert pipe.sample_due(unsettled) and pipe.sample_due(state(*[0.02] * 5))
 
 
 @pytest.mark.slow

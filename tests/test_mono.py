@@ -189,3 +189,28 @@ def test_a_new_start_after_a_loss_keeps_the_scale_of_the_lost_window():
     assert np.median(1.0 / again.idepth) == pytest.approx(2.5)
     assert np.allclose(np.asarray(again.T_ref_cur.t), 2.5 * np.asarray(T.t)) and np.allclose(again.T_ref_cur.q, T.q)
     assert rescaled(start, 1.0) is start
+
+
+def test_exposure_pairs_use_the_window_points_depth_at_the_tracked_pose():
+    """A frame kept for the exposure estimate's pairs carries the depth of the window's points seen
+    from its tracked pose (NaN elsewhere), not the filled map the frame was tracked with: only the
+    points give the blur of the pair's tracking a reliable depth."""
+    from mbavo_jax.datasets.base import Frame
+    from mbavo_jax.odometry.mono import MonoState
+    from mbavo_jax.odometry.state import RunState
+
+    w, h = 160, 120
+    camera = PinholeCamera.create(131.0, 131.0, (w - 1) / 2, (h - 1) / 2, w, h)
+    window = Window.empty(4, 64, h, w)
+    for k in range(3):
+        window, _ = add_keyframe(window, np.zeros((h, w), np.float32), Pose(Pose.identity().q, jnp.array([0.05 * k, 0.0, 0.0])))
+    pixels = np.array([[40.0, 30.0], [80.0, 60.0], [120.0, 90.0]], np.float32)
+    window, _ = add_points(window, 0, pixels, np.array([0.5, 0.25, 1.0], np.float32))
+    pipeline = MonoPipeline(camera, RunConfig().replace(odometry=dict(mode="mono")))
+    mono = MonoState(window=window, slots=(0, 1, 2), stamps=(0.0, 0.1, 0.2), candidates=(None,) * 4)
+    state = RunState(mids=((0.2, Pose.identity()),), backend=mono)
+    frame = Frame(3, 0.3, np.full((h, w), 0.5, np.float32), camera, depth=np.ones((h, w), np.float32))
+    recent, _ = pipeline.exposure_pairing(state, frame, Pose.identity(), 100.0, 0.1)
+    depth = recent[-1].depth
+    assert np.isfinite(depth).sum() == 3
+    assert np.allclose(depth[[30, 60, 90], [40, 80, 120]], [2.0, 4.0, 1.0])

@@ -27,13 +27,19 @@ from ..geometry import ExposureTrajectory, PinholeCamera, Pose, readout_fraction
 from ..tracking import Keyframe, exposure_from_velocity, track
 from .stats import keyframe_stats
 
-__all__ = ["ExposureEstimate", "RawFrame", "exposure_mode", "prior_off", "pick_pair", "pair_sample"]
+__all__ = ["ExposureEstimate", "RawFrame", "adaptive_n", "exposure_mode", "prior_off", "pick_pair", "pair_sample"]
 
 
 @functools.lru_cache(maxsize=16)
 def prior_off(config: TrackerConfig) -> TrackerConfig:
     """``config`` without the exposure-motion prior (one object per config: the tracker's caches hit)."""
     return dataclasses.replace(config, blur_prior=0.0)
+
+
+@functools.lru_cache(maxsize=16)
+def adaptive_n(config: TrackerConfig) -> TrackerConfig:
+    """``config`` with n chosen from each frame's predicted blur (``n_mode`` adaptive), one object per config."""
+    return dataclasses.replace(config, n_mode="adaptive")
 
 
 def exposure_mode(odo: OdometryConfig, recorded: bool) -> str:
@@ -136,6 +142,14 @@ class ExposureEstimate:
     @property
     def count(self) -> int:
         return len(self.samples)
+
+    def settled(self, count: int, tolerance: float) -> bool:
+        """Whether the estimate (as a fraction of the frame interval) moved by at most ``tolerance``
+        over its last ``count`` samples."""
+        if self.count < count:
+            return False
+        seen = [dataclasses.replace(self, samples=self.samples[:k]).fraction() for k in range(self.count - count + 1, self.count + 1)]
+        return max(seen) - min(seen) <= tolerance
 
     def seconds(self, frame_dt: float) -> float:
         """The exposure time: the samples' weighted median, or ``guess`` · ``frame_dt`` before any."""

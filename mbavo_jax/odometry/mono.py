@@ -89,6 +89,11 @@ class MonoPipeline(RGBDPipeline):
     def __post_init__(self):
         object.__setattr__(self, "config", self.config.replace(tracker=dict(depth_weight=0.0)))
 
+    def start_state(self, seq, progress: bool = False) -> RunState:
+        """A fresh state: the RGB-D pipeline's exposure probe is not run (the monocular start has no
+        depth to probe with before the two-view initialisation)."""
+        return RunState()
+
     def step(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
         t0 = time.perf_counter()
         frame = dataclasses.replace(frame, depth=None)
@@ -207,10 +212,14 @@ class MonoPipeline(RGBDPipeline):
         """As the RGB-D pipeline's, but a frame joins the exposure estimate's pairs only once the
         window holds ``SAMPLING_KEYFRAMES`` keyframes: before, its depth (from the few points of the
         two-view start) is too coarse to measure blur with, and a wrong early sample pulls the estimate
-        (a median of few samples) far off."""
+        (a median of few samples) far off. The frame kept for pairing carries the depth of the
+        window's points seen from its tracked pose (NaN elsewhere), not the filled map it was tracked
+        with: a pair's tracking then uses the points only, where the depth is known, and its blur
+        length (hence the sample) is not skewed by the filled map's guesses between points."""
         mono = state.backend
         if mono is None or len(mono.slots) < SAMPLING_KEYFRAMES:
             return state.recent, None
+        frame = dataclasses.replace(frame, depth=self.window_depth(mono, T_w_mid))
         return super().exposure_pairing(state, frame, T_w_mid, speed, dt)
 
     def make_keyframe(self, state: RunState, image, depth, T_world_kf: Pose) -> Keyframe:

@@ -21,12 +21,16 @@ from ..config import OdometryConfig, RunConfig, TrackerConfig
 from ..deblur import choose_deblur_n, deblur, exposure_blur_px
 from ..geometry import ExposurePath, ExposureTrajectory, PinholeCamera, Pose, readout_fraction
 from ..image import quantize16
+from ..progress import bar
 from ..tracking import Keyframe, Status, TrackResult, constant_velocity_guess, exposure_from_velocity, track
-from .exposure import ExposureEstimate, RawFrame, exposure_mode, pair_sample, pick_pair, prior_off
+from .exposure import ExposureEstimate, RawFrame, adaptive_n, exposure_mode, pair_sample, pick_pair, prior_off
 from .stats import PointStats, keyframe_stats
 from .state import ExposureReport, Fit, FrameOutcome, KeyframeState, NewKeyframe, PendingDeblur, RunState, Triptych
 
 __all__ = ["RGBDPipeline", "PointStats", "needs_keyframe", "keyframe_stats", "implausible"]
+
+
+SETTLED_SAMPLES = 6  # the estimate's last samples that ``odometry.exposure_settled`` compares
 
 
 def needs_keyframe(stats: PointStats, width: int, odo: OdometryConfig) -> bool:
@@ -63,6 +67,7 @@ class RGBDPipeline:
 
     camera: PinholeCamera
     config: RunConfig = RunConfig()
+    probe: bool = False  # an exposure probe's run (``start_state``): new keyframes are not deblurred
 
     def step(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
         t0 = time.perf_counter()
@@ -88,6 +93,23 @@ class RGBDPipeline:
         """The running exposure estimate (a fresh one before the first sample)."""
         odo = self.config.odometry
         return state.exposure or ExposureEstimate(odo.exposure_guess, odo.exposure_window)
+
+    def start_state(self, seq, progress: bool = False) -> RunState:
+        """The loop's first state. With an estimated exposure, the first ``odometry.exposure_probe``
+        frames are run once beforehand (nothing written; of the keyframes only the first, whose
+        deblurring gives the velocity, is deblurred) and the estimate of their pairs replaces the
+        uninformative guess: the run's first keyframes are then deblurred along an estimated
+        exposure. Deterministic, so ``--resume`` repeats it."""
+        k = min(self.config.odometry.exposure_probe, len(seq))
+        if k < 2 or self.exposure_mode(seq[0]) != "estimate":
+            return RunState()
+        probe, state = dataclasses.replace(self, probe=True), RunState()
+        with bar(k, "exposure probe", progress) as pbar:
+            for index in range(k):
+                state, _ = probe.step(state, seq[index], index)
+                pbar.update()
+        est = self.estimate(state)
+        return RunState(exposure=ExposureEstimate(est.fraction(), est.window)) if est.count else RunState()
 
     def exposure_of(self, state: RunState, frame, frame_dt: float) -> float:
         """The frame's exposure time (s): recorded in the data (else ``odometry.exposure_s``) when
@@ -119,12 +141,26 @@ class RGBDPipeline:
         wait = cfg.odometry.deblur_first_keyframe and cfg.tracker.blur_aware and frame.depth is not None and exposure != 0.0
         return PendingDeblur(frame.image, frame.depth, exposure) if wait else None
 
-    def tracker_config(self, frame, informed: bool) -> TrackerConfig:
+    def tracker_config(self, frame, informed: bool, state: RunState | None = None) -> TrackerConfig:
         """The tracker's settings for this frame: as configured, but with an estimated exposure the
         exposure-motion prior is off while the guess carries no velocity (``informed`` false), so
-        that nothing pins a frame sharp for want of knowledge."""
+        that nothing pins a frame sharp for want of knowledge; and a frame predicted by a velocity
+        whose exposure (in ``state``) is short is tracked with adaptive n, which its small predicted
+        blur keeps small."""
         tracker = self.config.tracker
-        return tracker if informed or self.exposure_mode(frame) != "estimate" else prior_off(tracker)
+        if not informed:
+            return tracker if self.exposure_mode(frame) != "estimate" else prior_off(tracker)
+        if tracker.blur_aware and state is not None and state.mids and self.short_exposure(state, frame):
+            return adaptive_n(tracker)
+        return tracker
+
+    def short_exposure(self, state: RunState, frame) -> bool:
+        """Whether the frame's exposure is at most ``odometry.short_exposure`` of the frame interval:
+        known so, or estimated so by an estimate that has settled (``odometry.exposure_settled``)."""
+        odo, dt = self.config.odometry, self.frame_interval(state, frame)
+        if self.exposure_mode(frame) == "estimate" and not self.estimate(state).settled(SETTLED_SAMPLES, odo.exposure_settled):
+            return False
+        return dt > 0 and self.exposure_of(state, frame, dt) <= odo.short_exposure * dt
 
     def keyframe_without_path(self, state: RunState, frame, T_world_kf: Pose) -> tuple[RunState, NewKeyframe]:
         """A keyframe at ``T_world_kf`` from a frame whose exposure path is not known yet: used as it
@@ -160,7 +196,7 @@ class RGBDPipeline:
         if frame.depth is None or np.isfinite(frame.depth).any():  # else nothing to place the frame with
             init, informed = self.predict(state, frame)
             rho = self.frame_readout(state, frame)
-            first = track(state.keyframe.keyframe, frame.image, init, self.tracker_config(frame, informed), depth=frame.depth,
+            first = track(state.keyframe.keyframe, frame.image, init, self.tracker_config(frame, informed, state), depth=frame.depth,
                           readout=rho)
             stats = self.frame_stats(state, first, init.middle() if informed else None) if first.status.ok else None
             result, fit = self.checked(state, frame, first, stats, informed)
@@ -229,7 +265,7 @@ class RGBDPipeline:
         keyframe = self.make_keyframe(state, sharp, pending.depth, kf.T_world_kf)
         state = state.replace(keyframe=dataclasses.replace(kf, keyframe=keyframe))
         init = ExposureTrajectory(mid.compose(path.start), mid.compose(path.end))  # same velocity: T_kf_mid ∘ path
-        again = track(keyframe, frame.image, init, self.tracker_config(frame, True), depth=frame.depth, readout=readout)
+        again = track(keyframe, frame.image, init, self.tracker_config(frame, True, state), depth=frame.depth, readout=readout)
         return state, (again if again.status.ok else result), ((kf.stamp, sharp),)
 
     def exposure_report(self, state: RunState, frame, sample: tuple[float, float] | None, dt: float,
@@ -243,15 +279,23 @@ class RGBDPipeline:
         est = self.estimate(state).add(sample, dt)
         return ExposureReport(mode, est.seconds(dt), est.fraction(), None if sample is None else (*sample, dt), est, speed)
 
+    def sample_due(self, state: RunState) -> bool:
+        """Whether this frame is paired for an exposure sample: every frame until the estimate has
+        settled (``odometry.exposure_settled``), then every ``exposure_thin``-th tracked frame."""
+        odo = self.config.odometry
+        return state.tracked % odo.exposure_thin == 0 or not self.estimate(state).settled(SETTLED_SAMPLES, odo.exposure_settled)
+
     def exposure_pairing(self, state: RunState, frame, T_w_mid: Pose, speed: float, dt: float):
         """(recent raw frames with this one, a sample from the pair of this frame and a recent one
-        whose speeds differ most, or None), for an estimated exposure."""
+        whose speeds differ most, or None), for an estimated exposure. The pair is tracked with
+        adaptive n when the exposure is settled short (``short_exposure``), as the frames are."""
         odo = self.config.odometry
         current = RawFrame(frame.timestamp, frame.image, frame.depth, T_w_mid, state.mids[-1][1], dt, speed)
-        pair, sample = pick_pair(state.recent, current, odo.exposure_pair_ratio), None
+        pair, sample = pick_pair(state.recent, current, odo.exposure_pair_ratio) if self.sample_due(state) else None, None
         if pair is not None:
             guess = self.estimate(state).seconds(pair[1].dt)
-            sample = pair_sample(*pair, self.camera, self.config.tracker, guess, odo.exposure_pair_ratio)
+            tracker = adaptive_n(self.config.tracker) if self.short_exposure(state, frame) else self.config.tracker
+            sample = pair_sample(*pair, self.camera, tracker, guess, odo.exposure_pair_ratio)
         return (*state.recent, current)[-odo.exposure_pair_frames:], sample
 
     def _tracked(self, state: RunState, frame, index: int, result: TrackResult, informed: bool, fit: Fit,
@@ -278,7 +322,7 @@ class RGBDPipeline:
         """This frame as the next keyframe, deblurred along its tracked exposure path ``traj`` (mean
         blur ``blur`` px, readout fraction ``readout``) when blurred enough."""
         sharp, triptych = quantize16(frame.image), None
-        if blur > self.config.odometry.deblur_min_blur_px and self.config.tracker.blur_aware:
+        if blur > self.config.odometry.deblur_min_blur_px and self.config.tracker.blur_aware and not self.probe:
             sharp, n = self.deblurred(frame.image, frame.depth, traj, readout)
             if state.triptychs < self.config.odometry.triptychs:
                 triptych = Triptych(frame.image, sharp, frame.depth, traj, n, readout)

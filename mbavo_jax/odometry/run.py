@@ -101,9 +101,14 @@ def _records(out: pathlib.Path, rows: list[dict]):
     return read_tum_trajectory(out / "trajectory.txt"), read_tum_trajectory(out / "keyframes.txt")
 
 
-def resume_state(out, seq, pipeline: Pipeline) -> tuple[RunState, int]:
+def start_state(seq, pipeline: Pipeline, progress: bool = False) -> RunState:
+    """The state the loop starts from (``pipeline.start_state``: e.g. an exposure probe), else a fresh one."""
+    return pipeline.start_state(seq, progress) if hasattr(pipeline, "start_state") else RunState()
+
+
+def resume_state(out, seq, pipeline: Pipeline, progress: bool = False) -> tuple[RunState, int]:
     """(state, index of the next frame) of the run in ``out``, cut back to its last committed frame
-    (``folder.reconcile``), or (a fresh state, 0) when it holds none. The state is the one the
+    (``folder.reconcile``), or (``start_state``, 0) when it holds none. The state is the one the
     loop had after that frame, so the resumed run goes on exactly as the uninterrupted one."""
     out = pathlib.Path(out)
     rows = reconcile(out)
@@ -111,7 +116,7 @@ def resume_state(out, seq, pipeline: Pipeline) -> tuple[RunState, int]:
         if (out / "trajectory.txt").is_file() and len((out / "trajectory.txt").read_text().splitlines()) > 1:
             raise DataError(out / "frames.csv", "missing or empty, so the run's frames are not known: cannot --resume "
                             "(run without --resume to start afresh)")
-        return RunState(), 0
+        return start_state(seq, pipeline, progress), 0
     (t_done, p_done), (t_kf, p_kf) = _records(out, rows)
     start, counters = int(rows[-1]["index"]) + 1, _loop_counters(rows)
     k = int(np.argmin(np.abs(seq.timestamps - t_kf[-1])))
@@ -127,7 +132,7 @@ def resume_state(out, seq, pipeline: Pipeline) -> tuple[RunState, int]:
     mids = tuple((float(t), _pose(p)) for t, p in zip(t_done[-2:], p_done[-2:]))
     state = RunState(keyframe=kf, mids=mids[-1:] if counters["forgot"] or reset else mids, keyframes=len(t_kf), tracked=len(t_done),
                      triptychs=len(list(out.glob("triptych_*.png"))), consecutive_drops=counters["consecutive_drops"],
-                     fits=counters["fits"][-cfg.odometry.reject_window:])
+                     fits=counters["fits"][-cfg.odometry.reject_window:], exposure=start_state(seq, pipeline, progress).exposure)
     state = _restore_exposure(state, rows, seq, {float(t): _pose(p) for t, p in zip(t_done, p_done)}, pipeline)
     return state.replace(pending=waiting), start
 
@@ -163,7 +168,7 @@ def _prepare(out: pathlib.Path, seq, config: RunConfig, resume: bool, resume_any
     prepare_out_dir(out)
     if resume:
         check_resume(out, seq, config, resume_anyway)
-    state, start = resume_state(out, seq, pipeline) if resume else (RunState(), 0)
+    state, start = resume_state(out, seq, pipeline, progress) if resume else (start_state(seq, pipeline, progress), 0)
     if note and progress:
         print(f"mbavo: note: {note}", file=sys.stderr)
     if start == 0:

@@ -82,6 +82,19 @@ def _procedural(rng, kind, size):
     raise ValueError(kind)
 
 
+def default_shared_data() -> pathlib.Path | None:
+    """The real-data folder: ``$MBAVO_SHARED_DATA``, else ``../shared/data`` beside the working
+    directory or beside the repository holding this package (so that generated data does not
+    depend on where a command runs); None when none exists."""
+    env = os.environ.get("MBAVO_SHARED_DATA")
+    if env:
+        return pathlib.Path(env)
+    for root in (pathlib.Path.cwd(), pathlib.Path(__file__).resolve().parents[2]):
+        if (root.parent / "shared" / "data").is_dir():
+            return root.parent / "shared" / "data"
+    return None
+
+
 def _real_images(shared_data: pathlib.Path | None):
     """A few real photos from ../shared/data, if present (textures from real images)."""
     out = []
@@ -107,10 +120,7 @@ def make_textures(seed: int, size: int = TEXTURE_SIZE, use_real: bool = True, sh
         names.append(kind)
         texs.append(_procedural(rng, kind, size))
     if use_real:
-        if shared_data is None:
-            env = os.environ.get("MBAVO_SHARED_DATA")
-            shared_data = pathlib.Path(env) if env else pathlib.Path.cwd().parent / "shared" / "data"
-        for name, img in _real_images(pathlib.Path(shared_data)):
+        for name, img in _real_images(pathlib.Path(shared_data) if shared_data is not None else default_shared_data()):
             h, w = img.shape
             s = min(h, w)
             crop = img[(h - s) // 2 : (h - s) // 2 + s, (w - s) // 2 : (w - s) // 2 + s]

@@ -14,7 +14,7 @@ import pytest
 from mbavo_jax.config import MonoConfig
 from mbavo_jax.geometry import PinholeCamera, Pose
 from mbavo_jax.mono import candidates as mc
-from mbavo_jax.mono.window import Window, add_keyframe
+from mbavo_jax.mono.window import Window, add_keyframe, add_points
 from mbavo_jax.synthetic.generator import camera_path
 from mbavo_jax.synthetic.scene import default_scene, render_exposure, scene_arrays
 from mbavo_jax.tracking.points import gradient_magnitude
@@ -231,3 +231,28 @@ def test_activate_moves_ready_candidates_into_the_window_as_far_as_it_holds_them
     valid[joined] = False
     np.testing.assert_array_equal(np.asarray(rest.valid), valid)  # those that joined are no longer candidates
     assert int(np.asarray(mc.ready(rest, CONFIG)).sum()) == 5  # those that did not fit wait
+
+
+def test_parallax_is_the_disparity_of_a_point_at_that_depth(scene, selected):
+    camera = scene[0]
+    b, idepth = 0.05, 0.4  # a 5 cm sideways step, points at 2.5 m: f · b · ρ px for every pixel
+    step = Pose(jnp.array([0.0, 0.0, 0.0, 1.0], jnp.float32), jnp.array([b, 0.0, 0.0], jnp.float32))
+    disparity = np.asarray(mc.parallax(selected, camera, step, jnp.asarray(idepth, jnp.float32)))
+    np.testing.assert_allclose(disparity, float(camera.fx) * b * idepth, rtol=1e-4)
+    assert np.all(np.asarray(mc.parallax(selected, camera, step, jnp.asarray(0.0))) == 0.0)
+
+
+def test_activate_waits_for_a_baseline_to_the_latest_frame(scene, selected):
+    """Ready candidates join only when a point at the window's median depth would move at least
+    MIN_PARALLAX px between their host and the latest frame traced: not after a 1 mm step."""
+    camera, host, frames, _ = scene
+    c = trace_all(selected, camera, host, frames, [f.sharp for f in frames])[-1]
+    mask = np.asarray(mc.ready(c, CONFIG))
+    win, slot = add_keyframe(Window.empty(2, 2 * COUNT, H, W), np.asarray(host.sharp), host.T_world_cam)
+    win, _ = add_points(win, slot, np.array([[10.0, 10.0]]), np.array([1.0 / np.median(host.depth)]))  # the median depth
+    near = host.T_world_cam.compose(Pose(jnp.array([0.0, 0.0, 0.0, 1.0], jnp.float32), jnp.array([1e-3, 0.0, 0.0], jnp.float32)))
+    out, rest = mc.activate(win, jnp.asarray(slot, jnp.int32), c, CONFIG, camera, near)
+    assert int(np.asarray(out.point_valid).sum()) == 1  # none joined
+    np.testing.assert_array_equal(np.asarray(rest.valid), np.asarray(c.valid))
+    out, rest = mc.activate(win, jnp.asarray(slot, jnp.int32), c, CONFIG, camera, frames[-1].T_world_cam)
+    assert int(np.asarray(out.point_valid).sum()) == 1 + mask.sum() and mask.sum() > 20

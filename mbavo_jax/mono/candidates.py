@@ -38,8 +38,8 @@ from ..image import bilinear, bilinear_with_gradient
 from ..tracking.points import PATTERN, gradient_magnitude
 from .window import Window, insert_points
 
-__all__ = ["Candidates", "FrameBlur", "select_candidates", "trace", "ready", "estimates", "activate", "UNTRACED", "GOOD", "SKIPPED",
-           "BAD_CONDITION", "OUT_OF_IMAGE", "OUTLIER"]
+__all__ = ["Candidates", "FrameBlur", "select_candidates", "trace", "ready", "estimates", "parallax", "activate", "UNTRACED", "GOOD",
+           "SKIPPED", "BAD_CONDITION", "OUT_OF_IMAGE", "OUTLIER"]
 
 # Status of a candidate's last trace.
 UNTRACED, GOOD, SKIPPED, BAD_CONDITION, OUT_OF_IMAGE, OUTLIER = range(6)
@@ -61,6 +61,7 @@ READY_PIXELS = 8.0  # px: largest interval along the last line of a ready candid
 GRAD_ADD = 7.0 / 255.0  # selection: a pixel's gradient must exceed its region's median by this
 REGION = 32  # px: blocks of the region-adaptive gradient threshold
 SELECT_LEVELS = 3  # selection passes with cells 1x, 2x, 4x, each with the threshold x 0.75
+MIN_PARALLAX = 1.0  # px: a point at the window's median depth must move this far from host to latest frame to activate
 BLUR_SAMPLES = 16  # virtual frames of the blur model when a sharp host's pattern is blurred for a blurry frame
 
 
@@ -456,10 +457,38 @@ def estimates(c: Candidates) -> tuple[Float[Array, "M 2"], Float[Array, " M"]]:
     return c.pixels, jnp.where(bounded, 0.5 * (c.idepth_min + jnp.where(bounded, c.idepth_max, 0.0)), 0.0)
 
 
+def parallax(c: Candidates, camera: PinholeCamera, T_frame_host: Pose, idepth: Float[Array, ""]) -> Float[Array, " M"]:
+    """The disparity (px) each candidate's pixel would have in a frame (``T_frame_host`` maps host
+    points into it) at inverse depth ``idepth``: the distance between its projections at ``idepth``
+    and at infinity, i.e. the parallax the frame's baseline gives a point at that depth."""
+
+    def one(pixel):
+        line = epipolar_line(camera, T_frame_host, pixel)
+        (x0, _), (x1, _) = line.project(jnp.zeros_like(idepth)), line.project(idepth)
+        return jnp.linalg.norm(x1 - x0)
+
+    return jax.vmap(one)(c.pixels)
+
+
+def window_idepth(window: Window) -> Float[Array, ""]:
+    """The median inverse depth of the window's points (NaN when it has none)."""
+    return jnp.nanmedian(jnp.where(window.point_valid, window.idepth, jnp.nan))
+
+
 @functools.partial(jax.jit, static_argnames=("config",))
-def activate(window: Window, slot: Int[Array, ""], c: Candidates, config: MonoConfig = MonoConfig()) -> tuple[Window, Candidates]:
+def activate(window: Window, slot: Int[Array, ""], c: Candidates, config: MonoConfig = MonoConfig(),
+             camera: PinholeCamera | None = None, T_world_frame: Pose | None = None) -> tuple[Window, Candidates]:
     """The ready candidates of ``c`` (hosted by keyframe ``slot``) join ``window`` as points at their
-    estimates, in order, as many as there are free point slots; those that joined leave ``c``."""
+    estimates, in order, as many as there are free point slots; those that joined leave ``c``. With
+    ``camera`` and the pose of the latest frame traced (``T_world_frame``), a candidate also needs a
+    baseline: a point at the window's median inverse depth would move at least MIN_PARALLAX px
+    between its host and that frame (otherwise it waits, and is traced further)."""
     pixels, idepth = estimates(c)
-    window, added = insert_points(window, slot, pixels, idepth, ready(c, config))
+    ok = ready(c, config)
+    if camera is not None and T_world_frame is not None:
+        typical = window_idepth(window)
+        T_frame_host = T_world_frame.inverse().compose(Pose(window.poses.q[slot], window.poses.t[slot]))
+        disparity = parallax(c, camera, T_frame_host, jnp.where(typical > 0, typical, 0.0))
+        ok = ok & (~(typical > 0) | (disparity >= MIN_PARALLAX))
+    window, added = insert_points(window, slot, pixels, idepth, ok)
     return window, eqx.tree_at(lambda x: x.valid, c, c.valid & ~added)

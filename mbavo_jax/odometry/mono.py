@@ -174,7 +174,7 @@ class MonoPipeline(RGBDPipeline):
                             candidates=tuple(candidates), initialisations=mono.initialisations + 1)
         T_world_frame = mono.origin.compose(two_view.T_ref_cur)
         path = velocity.seen_from(T_world_frame) if sharp else None
-        mono = self._activate(self.traced(mono, frame.image, T_world_frame, path=path, readout=rho))
+        mono = self._activate(self.traced(mono, frame.image, T_world_frame, path=path, readout=rho), T_world_frame)
         state = state.replace(backend=mono)
         kf = KeyframeState(self.make_keyframe(state, image, None, mono.origin), mono.origin, stamp)
         state = state.replace(keyframe=kf, mids=((stamp, mono.origin),), keyframes=state.keyframes + 1, fits=(), pending=None,
@@ -311,13 +311,14 @@ class MonoPipeline(RGBDPipeline):
                 window = eqx.tree_at(lambda w: w.images, window, window.images.at[slot].set(linear))
         return mono.replace(window=window)
 
-    def _activate(self, mono: MonoState) -> MonoState:
-        """Ready candidates of every window keyframe join the window's points (as many as fit)."""
+    def _activate(self, mono: MonoState, T_world_frame: Pose) -> MonoState:
+        """Ready candidates of every window keyframe join the window's points (as many as fit), those
+        with enough parallax between their host and the latest frame traced (``T_world_frame``)."""
         window, cands = mono.window, list(mono.candidates)
         for slot in reversed(mono.slots):  # the newest keyframes' points first
             c = cands[slot]
             if c is not None:
-                window, cands[slot] = activate(window, jnp.asarray(slot, jnp.int32), c, self.config.mono)
+                window, cands[slot] = activate(window, jnp.asarray(slot, jnp.int32), c, self.config.mono, self.camera, T_world_frame)
         return mono.replace(window=window, candidates=tuple(cands))
 
     def _backend(self, state: RunState, frame, outcome: FrameOutcome) -> tuple[RunState, FrameOutcome]:
@@ -334,7 +335,7 @@ class MonoPipeline(RGBDPipeline):
         cands = list(mono.candidates)
         cands[slot] = select_candidates(image, cfg.mono.candidates, cfg.mono)
         mono = self._activate(mono.replace(window=window, slots=(*mono.slots, slot), stamps=(*mono.stamps, new.stamp),
-                                           candidates=tuple(cands)))
+                                           candidates=tuple(cands)), new.T_world_kf)
         window, report = bundle_adjust(mono.window, self.camera, cfg.mono)
         mono = mono.replace(window=window)
         T_new = _slot_pose(window, slot)

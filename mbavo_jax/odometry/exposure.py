@@ -145,11 +145,8 @@ class ExposureEstimate:
 
     def settled(self, count: int, tolerance: float) -> bool:
         """Whether the estimate (as a fraction of the frame interval) moved by at most ``tolerance``
-        over its last ``count`` samples."""
-        if self.count < count:
-            return False
-        seen = [dataclasses.replace(self, samples=self.samples[:k]).fraction() for k in range(self.count - count + 1, self.count + 1)]
-        return max(seen) - min(seen) <= tolerance
+        over its last ``count`` samples (computed once per estimate: a frame asks several times)."""
+        return _settled(self, count, tolerance)
 
     def seconds(self, frame_dt: float) -> float:
         """The exposure time: the samples' weighted median, or ``guess`` · ``frame_dt`` before any."""
@@ -163,3 +160,11 @@ class ExposureEstimate:
         if not self.samples:
             return self.guess
         return self.seconds(0.0) / float(np.median(np.asarray(self.samples)[:, 2]))
+
+
+@functools.lru_cache(maxsize=64)
+def _settled(est: ExposureEstimate, count: int, tolerance: float) -> bool:
+    if est.count < count:
+        return False
+    seen = [dataclasses.replace(est, samples=est.samples[:k]).fraction() for k in range(est.count - count + 1, est.count + 1)]
+    return max(seen) - min(seen) <= tolerance

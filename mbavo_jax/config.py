@@ -265,8 +265,8 @@ class OdometryConfig(Settings):
                                       "over its last 6 samples; then only every exposure_thin-th tracked frame is paired", FRACTION)
     exposure_thin: int = setting(8, "see exposure_settled (1: every frame is paired)", AT_LEAST_1)
     exposure_probe: int = setting(8, "estimated exposure: the first frames run once before the run (nothing written; only the first "
-                                  "keyframe deblurred), so that the run's first keyframes are deblurred along an estimate, not the "
-                                  "guess (0 = off)", NONNEG)
+                                  "keyframe deblurred); the run starts from their exposure samples, not the guess, and does not "
+                                  "pair them again (0 = off)", NONNEG)
     reject_rms_ratio: float = setting(2.5, "a tracked frame whose residual RMS exceeds this multiple of the largest of the recent "
                                       "frames' is dropped as implausible (0 = off)", NONNEG)
     reject_jump_ratio: float = setting(4.0, "... or whose pose lies further from the constant-velocity prediction than this multiple "

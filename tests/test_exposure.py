@@ -119,26 +119,30 @@ def test_blurred_sequence_without_exposure_times_recovers_the_exposure(strong, t
 @pytest.mark.slow
 def test_probe_starts_the_run_from_an_estimate_not_the_guess(strong, tmp_path):
     """With the exposure estimated, the first frames are run once beforehand (nothing written): the
-    run starts from their estimate (true fraction 0.75, the guess 0.5) and reports it on frame 0."""
+    run starts from their samples (true fraction 0.75, the guess 0.5), reports the estimate on frame
+    0 and does not pair those frames again."""
     path, cfg = strong
     seq = open_sequence(exposure_hidden_copy(path, tmp_path / "hidden"))
     config = load_config(None, SMALL_SET)
     start = RGBDPipeline(seq.camera, config).start_state(seq)
     true_fraction = cfg.exposure_ms / 1000 * cfg.fps
-    assert start.exposure is not None and start.exposure.count == 0 and start.tracked == 0
-    assert abs(start.exposure.guess - true_fraction) <= 0.2 * true_fraction, start.exposure
+    assert start.exposure is not None and start.exposure.count >= 3 and start.tracked == 0
+    assert start.probed_until == seq[config.odometry.exposure_probe - 1].timestamp
+    assert abs(start.exposure.fraction() - true_fraction) <= 0.2 * true_fraction, start.exposure
     assert RGBDPipeline(seq.camera, load_config(None, [*SMALL_SET, "odometry.exposure_probe=0"])).start_state(seq).exposure is None
     assert RGBDPipeline(seq.camera, config).start_state(open_sequence(path)).exposure is None  # exposure known: no probe
     run_odometry(seq, tmp_path / "run", config, max_frames=2, progress=False)
     with open(tmp_path / "run" / "frames.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert len(rows) == 2 and float(rows[0]["exposure_fraction"]) == pytest.approx(start.exposure.guess, abs=1e-4)
+    assert len(rows) == 2 and float(rows[0]["exposure_fraction"]) == pytest.approx(start.exposure.fraction(), abs=1e-4)
+    assert not rows[1]["sample_s"]  # frame 1 was paired by the probe
 
 
-def test_a_settled_short_exposure_picks_adaptive_n_and_thins_the_samples():
-    """Once the estimate has settled on a short exposure, frames predicted by a velocity are tracked
-    with adaptive n (few virtual frames for little blur) and only every ``exposure_thin``-th tracked
-    frame is paired; a known short exposure picks adaptive n too; a long or unsettled one does not."""
+def test_a_short_exposure_picks_adaptive_n_and_a_settled_one_thins_the_samples():
+    """A short exposure, estimated (settled or not) or known, has frames predicted by a velocity
+    tracked with adaptive n (few virtual frames for little blur); a long one does not. Once the
+    estimate has settled, only every ``exposure_thin``-th tracked frame is paired, and frames the
+    exposure probe paired are not paired again."""
     from types import SimpleNamespace
 
     from mbavo_jax.geometry import PinholeCamera
@@ -157,14 +161,16 @@ def test_a_settled_short_exposure_picks_adaptive_n_and_thins_the_samples():
 
     short, unsettled, long = state(*[0.02] * 6), state(0.4, 0.01, 0.02, 0.01, 0.3, 0.02), state(*[0.7] * 6)
     assert pipe.tracker_config(frame, True, short).n_mode == "adaptive"
-    assert pipe.tracker_config(frame, True, unsettled).n_mode == "fixed"
+    assert pipe.tracker_config(frame, True, unsettled).n_mode == "adaptive"
     assert pipe.tracker_config(frame, True, long).n_mode == "fixed"
+    assert pipe.tracker_config(frame, True, RunState()).n_mode == "fixed"  # nothing tracked yet: no velocity
     assert pipe.tracker_config(frame, False, short).blur_prior == 0  # no velocity: the prior is off, n as configured
     assert pipe.tracker_config(frame, False, short).n_mode == "fixed"
     assert pipe.tracker_config(SimpleNamespace(timestamp=1.08, exposure=0.0), True, RunState(mids=mids)).n_mode == "adaptive"
     assert pipe.tracker_config(SimpleNamespace(timestamp=1.08, exposure=0.03), True, RunState(mids=mids)).n_mode == "fixed"
-    assert not pipe.sample_due(short) and pipe.sample_due(dataclasses.replace(short, tracked=16))
-    assert pipe.sample_due(unsettled) and pipe.sample_due(state(*[0.02] * 5))
+    assert not pipe.sample_due(short, 1.08) and pipe.sample_due(dataclasses.replace(short, tracked=16), 1.08)
+    assert pipe.sample_due(unsettled, 1.08) and pipe.sample_due(state(*[0.02] * 5), 1.08)
+    assert not pipe.sample_due(dataclasses.replace(unsettled, probed_until=1.08), 1.08)
 
 
 @pytest.mark.slow

@@ -6,7 +6,7 @@
 from __future__ import annotations
 
 import equinox as eqx
-
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -58,11 +58,10 @@ class Pose(eqx.Module):
 
     def compose(self, other: "Pose") -> "Pose":
         """``T_a_b.compose(T_b_c) = T_a_c``."""
-        return Pose(quat.product(self.q, other.q), self.rotation() @ other.t + self.t)
+        return _compose(self, other)
 
     def inverse(self) -> "Pose":
-        q_inv = quat.inverse(self.q)
-        return Pose(q_inv, -(quat.to_matrix(q_inv) @ self.t))
+        return _inverse(self)
 
     def plus(self, delta: Float[Array, "6"]) -> "Pose":
         """Local update used by the solver: q' = q ⊗ exp(Δr) (Eq. 45), t' = t + Δt.
@@ -75,3 +74,14 @@ class Pose(eqx.Module):
         return Pose(self.q / jnp.linalg.norm(self.q, axis=-1, keepdims=True), self.t)
 
 
+
+
+@jax.jit  # one compiled call instead of a dozen small ones where poses are handled outside a solver
+def _compose(a: Pose, b: Pose) -> Pose:
+    return Pose(quat.product(a.q, b.q), quat.to_matrix(a.q) @ b.t + a.t)
+
+
+@jax.jit
+def _inverse(a: Pose) -> Pose:
+    q_inv = quat.inverse(a.q)
+    return Pose(q_inv, -(quat.to_matrix(q_inv) @ a.t))

@@ -71,6 +71,7 @@ class ExposureTrajectory(eqx.Module):
         return self.row_path(0.5, 2.0, readout)
 
 
+@jax.jit  # compiled once per dtype: called on single poses outside solvers too
 def interpolate(start: Pose, end: Pose, s) -> Pose:
     """Eqs. 43-44: q_s = q_0 ⊗ exp(s · log(q_0⁻¹ ⊗ q_τ)), t_s = t_0 + s (t_τ − t_0).
 

@@ -97,9 +97,10 @@ class RGBDPipeline:
     def start_state(self, seq, progress: bool = False) -> RunState:
         """The loop's first state. With an estimated exposure, the first ``odometry.exposure_probe``
         frames are run once beforehand (nothing written; of the keyframes only the first, whose
-        deblurring gives the velocity, is deblurred) and the estimate of their pairs replaces the
-        uninformative guess: the run's first keyframes are then deblurred along an estimated
-        exposure. Deterministic, so ``--resume`` repeats it."""
+        deblurring gives the velocity, is deblurred) and the run starts from their pairs' samples
+        instead of the uninformative guess: its first keyframes are then deblurred along an
+        estimated exposure, and those frames are not paired again. Deterministic, so ``--resume``
+        repeats it."""
         k = min(self.config.odometry.exposure_probe, len(seq))
         if k < 2 or self.exposure_mode(seq[0]) != "estimate":
             return RunState()
@@ -109,7 +110,7 @@ class RGBDPipeline:
                 state, _ = probe.step(state, seq[index], index)
                 pbar.update()
         est = self.estimate(state)
-        return RunState(exposure=ExposureEstimate(est.fraction(), est.window)) if est.count else RunState()
+        return RunState(exposure=est, probed_until=seq[k - 1].timestamp) if est.count else RunState()
 
     def exposure_of(self, state: RunState, frame, frame_dt: float) -> float:
         """The frame's exposure time (s): recorded in the data (else ``odometry.exposure_s``) when
@@ -145,8 +146,8 @@ class RGBDPipeline:
         """The tracker's settings for this frame: as configured, but with an estimated exposure the
         exposure-motion prior is off while the guess carries no velocity (``informed`` false), so
         that nothing pins a frame sharp for want of knowledge; and a frame predicted by a velocity
-        whose exposure (in ``state``) is short is tracked with adaptive n, which its small predicted
-        blur keeps small."""
+        whose exposure (in ``state``) is short, known or estimated, is tracked with adaptive n,
+        which its small predicted blur keeps small."""
         tracker = self.config.tracker
         if not informed:
             return tracker if self.exposure_mode(frame) != "estimate" else prior_off(tracker)
@@ -155,11 +156,9 @@ class RGBDPipeline:
         return tracker
 
     def short_exposure(self, state: RunState, frame) -> bool:
-        """Whether the frame's exposure is at most ``odometry.short_exposure`` of the frame interval:
-        known so, or estimated so by an estimate that has settled (``odometry.exposure_settled``)."""
+        """Whether the frame's exposure is at most ``odometry.short_exposure`` of the frame interval,
+        known or estimated (the exposure probe's samples give an estimate from the first frame)."""
         odo, dt = self.config.odometry, self.frame_interval(state, frame)
-        if self.exposure_mode(frame) == "estimate" and not self.estimate(state).settled(SETTLED_SAMPLES, odo.exposure_settled):
-            return False
         return dt > 0 and self.exposure_of(state, frame, dt) <= odo.short_exposure * dt
 
     def keyframe_without_path(self, state: RunState, frame, T_world_kf: Pose) -> tuple[RunState, NewKeyframe]:
@@ -279,22 +278,30 @@ class RGBDPipeline:
         est = self.estimate(state).add(sample, dt)
         return ExposureReport(mode, est.seconds(dt), est.fraction(), None if sample is None else (*sample, dt), est, speed)
 
-    def sample_due(self, state: RunState) -> bool:
-        """Whether this frame is paired for an exposure sample: every frame until the estimate has
-        settled (``odometry.exposure_settled``), then every ``exposure_thin``-th tracked frame."""
+    def sample_due(self, state: RunState, stamp: float) -> bool:
+        """Whether the frame at ``stamp`` is paired for an exposure sample: not when the exposure probe
+        paired it already; else every frame until the estimate has settled (``odometry.exposure_settled``),
+        then every ``exposure_thin``-th tracked frame."""
         odo = self.config.odometry
+        if stamp <= state.probed_until:
+            return False
         return state.tracked % odo.exposure_thin == 0 or not self.estimate(state).settled(SETTLED_SAMPLES, odo.exposure_settled)
 
     def exposure_pairing(self, state: RunState, frame, T_w_mid: Pose, speed: float, dt: float):
         """(recent raw frames with this one, a sample from the pair of this frame and a recent one
-        whose speeds differ most, or None), for an estimated exposure. The pair is tracked with
-        adaptive n when the exposure is settled short (``short_exposure``), as the frames are."""
+        whose speeds differ most, or None), for an estimated exposure. With a short estimate the
+        pair is tracked with adaptive n, chosen from an exposure of at least ``odometry.exposure_guess``
+        until the estimate has settled (``odometry.exposure_settled``), from the estimate after."""
         odo = self.config.odometry
         current = RawFrame(frame.timestamp, frame.image, frame.depth, T_w_mid, state.mids[-1][1], dt, speed)
-        pair, sample = pick_pair(state.recent, current, odo.exposure_pair_ratio) if self.sample_due(state) else None, None
+        pair, sample = pick_pair(state.recent, current, odo.exposure_pair_ratio) if self.sample_due(state, frame.timestamp) else None, None
         if pair is not None:
-            guess = self.estimate(state).seconds(pair[1].dt)
-            tracker = adaptive_n(self.config.tracker) if self.short_exposure(state, frame) else self.config.tracker
+            est, tracker = self.estimate(state), self.config.tracker
+            guess = est.seconds(pair[1].dt)
+            if self.short_exposure(state, frame):
+                tracker = adaptive_n(tracker)
+                if not est.settled(SETTLED_SAMPLES, odo.exposure_settled):
+                    guess = max(guess, odo.exposure_guess * pair[1].dt)
             sample = pair_sample(*pair, self.camera, tracker, guess, odo.exposure_pair_ratio)
         return (*state.recent, current)[-odo.exposure_pair_frames:], sample
 

@@ -44,10 +44,10 @@ def _restore_exposure(state: RunState, rows: list[dict], seq, poses: dict, pipel
     frames.csv ``rows`` record them (``poses``: stamp -> T_world_mid of tracked frames)."""
     if not hasattr(pipeline, "estimate"):
         return state
-    est = pipeline.estimate(state)
+    est = pipeline.estimate(state)  # the exposure probe's samples, if any, come first
     samples = tuple((float(r["sample_s"]), float(r["sample_weight"]), float(r["sample_dt_s"])) for r in rows if r.get("sample_s"))
     if any(r.get("exposure") == "estimate" for r in rows):
-        state = state.replace(exposure=dataclasses.replace(est, samples=samples[-est.window:]))
+        state = state.replace(exposure=dataclasses.replace(est, samples=(*est.samples, *samples)[-est.window:]))
     stamps = np.array(sorted(poses))
     keep = pipeline.config.odometry.exposure_pair_frames
     recent = []
@@ -132,7 +132,9 @@ def resume_state(out, seq, pipeline: Pipeline, progress: bool = False) -> tuple[
     mids = tuple((float(t), _pose(p)) for t, p in zip(t_done[-2:], p_done[-2:]))
     state = RunState(keyframe=kf, mids=mids[-1:] if counters["forgot"] or reset else mids, keyframes=len(t_kf), tracked=len(t_done),
                      triptychs=len(list(out.glob("triptych_*.png"))), consecutive_drops=counters["consecutive_drops"],
-                     fits=counters["fits"][-cfg.odometry.reject_window:], exposure=start_state(seq, pipeline, progress).exposure)
+                     fits=counters["fits"][-cfg.odometry.reject_window:])
+    fresh = start_state(seq, pipeline, progress)
+    state = state.replace(exposure=fresh.exposure, probed_until=fresh.probed_until)
     state = _restore_exposure(state, rows, seq, {float(t): _pose(p) for t, p in zip(t_done, p_done)}, pipeline)
     return state.replace(pending=waiting), start
 

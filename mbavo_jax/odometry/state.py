@@ -63,6 +63,7 @@ class RunState:
     triptychs: int = 0
     exposure: ExposureEstimate | None = None  # when the exposure time is estimated
     recent: tuple[RawFrame, ...] = ()  # the last raw frames, for the estimate's pairs
+    probed_until: float = float("-inf")  # the exposure probe's last frame: the samples of frames up to it are in ``exposure``
     fits: tuple[Fit, ...] = ()  # the last accepted frames' fits, for the plausibility checks
     backend: object | None = None  # the monocular system's window and initialiser (odometry.mono.MonoState)
 

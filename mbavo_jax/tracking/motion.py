@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 
 from ..geometry import quaternion as quat
 from ..geometry.pose import Pose
@@ -15,7 +17,8 @@ Path = ExposureTrajectory | SplineTrajectory
 __all__ = ["pose_power", "exposure_from_velocity", "constant_velocity_guess", "motion_hypotheses"]
 
 
-def pose_power(T: Pose, alpha: float) -> Pose:
+@jax.jit
+def pose_power(T: Pose, alpha: float | Float[Array, ""]) -> Pose:
     """T^α with the same decomposition as Eqs. 43-44: rotation exp(α log q), translation α t."""
     alpha = jnp.asarray(alpha, T.q.dtype)
     return Pose(quat.exp(alpha * quat.log(T.q)), alpha * T.t)

@@ -5,6 +5,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -12,7 +14,7 @@ from jaxtyping import Array, Float
 
 from . import quaternion as quat
 
-__all__ = ["Pose"]
+__all__ = ["Pose", "compiled_on_host"]
 
 
 class Pose(eqx.Module):
@@ -76,12 +78,25 @@ class Pose(eqx.Module):
 
 
 
-@jax.jit  # one compiled call instead of a dozen small ones where poses are handled outside a solver
+def compiled_on_host(fn):
+    """``fn`` as one compiled call when called on concrete arrays (poses handled outside a solver: a
+    dozen small ops otherwise), and as itself inside a trace, so traced programs stay as they are."""
+    compiled = jax.jit(fn)
+
+    @functools.wraps(fn)
+    def call(*args):
+        traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
+        return fn(*args) if traced else compiled(*args)
+
+    return call
+
+
+@compiled_on_host
 def _compose(a: Pose, b: Pose) -> Pose:
     return Pose(quat.product(a.q, b.q), quat.to_matrix(a.q) @ b.t + a.t)
 
 
-@jax.jit
+@compiled_on_host
 def _inverse(a: Pose) -> Pose:
     q_inv = quat.inverse(a.q)
     return Pose(q_inv, -(quat.to_matrix(q_inv) @ a.t))

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from . import quaternion as quat
-from .pose import Pose
+from .pose import Pose, compiled_on_host
 
 __all__ = ["ExposureTrajectory", "interpolate", "virtual_times", "virtual_poses", "row_times", "readout_fraction", "RowClock"]
 
@@ -71,7 +71,7 @@ class ExposureTrajectory(eqx.Module):
         return self.row_path(0.5, 2.0, readout)
 
 
-@jax.jit  # compiled once per dtype: called on single poses outside solvers too
+@compiled_on_host
 def interpolate(start: Pose, end: Pose, s) -> Pose:
     """Eqs. 43-44: q_s = q_0 ⊗ exp(s · log(q_0⁻¹ ⊗ q_τ)), t_s = t_0 + s (t_τ − t_0).
 

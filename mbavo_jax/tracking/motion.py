@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
 from ..geometry import quaternion as quat
-from ..geometry.pose import Pose
+from ..geometry.pose import Pose, compiled_on_host
 from ..geometry.spline import SplineTrajectory
 from ..geometry.trajectory import ExposureTrajectory
 
@@ -17,7 +16,7 @@ Path = ExposureTrajectory | SplineTrajectory
 __all__ = ["pose_power", "exposure_from_velocity", "constant_velocity_guess", "motion_hypotheses"]
 
 
-@jax.jit
+@compiled_on_host
 def pose_power(T: Pose, alpha: float | Float[Array, ""]) -> Pose:
     """T^α with the same decomposition as Eqs. 43-44: rotation exp(α log q), translation α t."""
     alpha = jnp.asarray(alpha, T.q.dtype)

@@ -102,26 +102,37 @@ def memory_growth(run_dir, early: int = 100) -> dict:
             "ratio": b / a}
 
 
-def speed_benchmark(cfg: BenchConfig, quiet: bool = False) -> dict:
-    """Per blur preset of ``cfg.preset`` (generated at ``cfg.width`` x ``cfg.height``, ``cfg.frames``
-    frames): our whole loop under the profile, after a 3-frame warm-up run in the same process (so
-    tracing and compilation, measured by the start-up runs, are not the loop's cost), Open3D hybrid's frame-to-frame odometry on the same frames, and the
-    start-up of fresh processes with an empty cache, a full one and none."""
-    from .bench import bench_data, run_peer
+def _warm_profile(seq, out: pathlib.Path, overrides: list[str], frames: int) -> dict:
+    """:func:`profile_run` of ``seq``'s first ``frames`` frames after the same run once in this
+    process (so that tracing and compilation, which the start-up runs measure, are not counted)."""
     from .config import calibration_of, load_config
-    from .datasets import open_sequence
     from .odometry import run_odometry
 
+    config = load_config(None, overrides, calibration_of(seq.meta))
+    run_odometry(seq, out / "warm-up", config, max_frames=frames, progress=False)
+    return profile_run(seq, out / "run", config, max_frames=frames)
+
+
+def speed_benchmark(cfg: BenchConfig, quiet: bool = False) -> dict:
+    """Per blur preset of ``cfg.preset`` (generated at ``cfg.width`` x ``cfg.height``, ``cfg.frames``
+    frames; also without its exposure metadata for those named in ``cfg.hide_exposure``): our whole
+    loop under the profile, and the same loop blind to blur (n = 1), each after a warm-up run in the
+    same process; Open3D hybrid's frame-to-frame odometry on the same frames; and, with
+    ``cfg.startup``, the start-up of fresh processes with an empty cache, a full one and none."""
+    from .bench import bench_data, run_peer, with_hidden_exposure
+    from .config import calibration_of, load_config
+    from .datasets import open_sequence
+
     out, results = pathlib.Path(cfg.out).parent / "bench_speed", {}
-    for preset in [p for p in cfg.preset.split(",") if p]:
-        data = bench_data(preset, cfg, cfg.frames, quiet)
+    presets = {p: bench_data(p, cfg, cfg.frames, quiet) for p in cfg.preset.split(",") if p}
+    for name, data in with_hidden_exposure(presets, cfg.hide_exposure).items():
         seq = open_sequence(data)
-        config = load_config(None, [], calibration_of(seq.meta))
-        startup = startup_runs(data, out / preset / "startup")
-        run_odometry(seq, out / preset / "warm-up", config, max_frames=3, progress=False)  # tracing and compilation: start-up's
-        ours = profile_run(seq, out / preset / "ours", config, max_frames=cfg.frames)
-        peer = {} if cfg.no_peers else run_peer(seq, out / preset / "open3d", "open3d", config.evaluation, cfg.peer_depth_max)
-        results[preset] = {"ours": ours, "open3d_s_per_frame": peer.get("seconds_per_frame"), "startup": startup}
+        startup = startup_runs(data, out / name / "startup") if cfg.startup else {}
+        ours = _warm_profile(seq, out / name / "ours", [], cfg.frames)
+        blind = _warm_profile(seq, out / name / "n1", ["tracker.blur_aware=false"], cfg.frames)
+        evaluation = load_config(None, [], calibration_of(seq.meta)).evaluation
+        peer = {} if cfg.no_peers else run_peer(seq, out / name / "open3d", "open3d", evaluation, cfg.peer_depth_max)
+        results[name] = {"ours": ours, "n1": blind, "open3d_s_per_frame": peer.get("seconds_per_frame"), "startup": startup}
     return results
 
 
@@ -132,13 +143,16 @@ def format_speed_table(res: dict) -> str:
         o = r["ours"]
         per_frame, peer = o["seconds"] / max(o["frames"], 1), r["open3d_s_per_frame"]
         ratio = f"{per_frame / peer:.1f}x Open3D hybrid ({peer:.3f} s)" if peer else "no Open3D"
-        lines += [f"[{preset}] whole loop {per_frame:.3f} s/frame over {o['frames']} frames = {ratio}",
+        blind = r["n1"]["seconds"] / max(r["n1"]["frames"], 1)
+        lines += [f"[{preset}] whole loop {per_frame:.3f} s/frame over {o['frames']} frames = {ratio}; "
+                  f"{per_frame / blind:.2f}x ours blind to blur (n = 1, {blind:.3f} s)",
                   "| part | seconds | share |", "|---|---|---|"]
         for part, sec in [*o["parts"].items(), ("rest", o["rest"])]:
             lines.append(f"| {part} | {sec:.2f} | {100 * sec / o['seconds']:.0f} % |")
         lines.append(f"| (compiling or loading programs, inside the parts) | {o['compile_seconds']:.2f} | |")
-        lines += ["| start-up run | programs compiled | from the cache | s to first tracked frame |", "|---|---|---|---|"]
-        lines += [f"| {k} | {v['compiled']} | {v['cache_hits']} | {v['startup_s']:.1f} |" for k, v in r["startup"].items()]
+        if r["startup"]:
+            lines += ["| start-up run | programs compiled | from the cache | s to first tracked frame |", "|---|---|---|---|"]
+            lines += [f"| {k} | {v['compiled']} | {v['cache_hits']} | {v['startup_s']:.1f} |" for k, v in r["startup"].items()]
         lines.append("")
     return "\n".join(lines)
 

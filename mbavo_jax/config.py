@@ -259,13 +259,15 @@ class OdometryConfig(Settings):
     exposure_window: int = setting(30, "estimated exposure: weighted median over this many recent samples", AT_LEAST_1)
     exposure_pair_ratio: float = setting(1.3, "estimated exposure: a sample pairs two raw frames whose speeds differ by this factor", at_least(1.05))
     exposure_pair_frames: int = setting(6, "estimated exposure: a frame is paired with one of this many recent frames", AT_LEAST_1)
-    short_exposure: float = setting(0.25, "a frame exposed for at most this fraction of the frame interval (known, or estimated and "
-                                    "settled), with a velocity to predict its blur, is tracked with adaptive n (tracker.n_mode)", FRACTION)
+    short_exposure: float = setting(0.25, "a frame exposed for at most this fraction of the frame interval (known or estimated), "
+                                    "with a velocity to predict its blur, is tracked with adaptive n (tracker.n_mode)", FRACTION)
+    sharp_blur_px: float = setting(0.5, "a frame tracked with adaptive n whose predicted blur is below this (full-resolution px) is "
+                                   "tracked as sharp: one pose, start = end (global shutter, linear path; 0 = never)", NONNEG)
     exposure_settled: float = setting(0.05, "estimated exposure: settled when it moved by at most this fraction of the frame interval "
                                       "over its last 6 samples; then only every exposure_thin-th tracked frame is paired", FRACTION)
     exposure_thin: int = setting(8, "see exposure_settled (1: every frame is paired)", AT_LEAST_1)
-    exposure_probe: int = setting(8, "estimated exposure: the first frames run once before the run (nothing written; only the first "
-                                  "keyframe deblurred); the run starts from their exposure samples, not the guess, and does not "
+    exposure_probe: int = setting(8, "estimated exposure: the first frames run once before the run (nothing written; tracked "
+                                  "blind to blur, no keyframe deblurred); the run starts from their exposure samples, not the guess, and does not "
                                   "pair them again (0 = off)", NONNEG)
     reject_rms_ratio: float = setting(2.5, "a tracked frame whose residual RMS exceeds this multiple of the largest of the recent "
                                       "frames' is dropped as implausible (0 = off)", NONNEG)
@@ -432,6 +434,7 @@ class BenchConfig(Settings):
     scenes: str = setting("", "odometry: also generate these scenes (cluttered, deep, distant; comma-separated) at scene_presets")
     scene_presets: str = setting("strong,extreme", "odometry: the blur presets of the extra scenes")
     peer_depth_max: float = setting(4.0, "depth range (m) of Open3D and OpenCV odometry (their own default; docs/benchmarks.md compares 20 m)", POSITIVE)
+    startup: bool = setting(True, "speed: also time the start-up of fresh processes (empty cache, full cache, none)")
     readouts: str = setting("0,15,30", "rolling-shutter: readout times (ms) of the generated sequences, comma-separated")
     shake_deg: float = setting(0.5, "rolling-shutter: handheld-shake amplitude (deg) of a second, curved-path set of sequences "
                                "(every preset and readout again; 0 = none)", NONNEG)

@@ -17,6 +17,7 @@ from mbavo_jax.evaluation import exposure_path_error, exposure_path_lengths
 from mbavo_jax.geometry import Pose
 from mbavo_jax.io import read_exposure_file
 from mbavo_jax.odometry import ExposureEstimate, RawFrame, exposure_mode, pick_pair, run_odometry
+import mbavo_jax.odometry.rgbd as rgbd
 from mbavo_jax.odometry.rgbd import RGBDPipeline
 from mbavo_jax.synthetic import PRESETS, SynthConfig, exposure_hidden_copy, generate_sequence
 
@@ -188,6 +189,27 @@ def test_sharp_sequence_without_exposure_times_keeps_start_and_end_together(tmp_
         first_sample = next(int(r["index"]) for r in csv.DictReader(fh) if r["sample_s"])
     lengths = exposure_path_lengths(read_exposure_file(out / "exposure.txt"), _camera(seq))
     assert np.all(lengths[first_sample + 1:] < 0.25), (first_sample, lengths)
+
+
+@pytest.mark.slow
+def test_sharp_frames_and_the_exposure_probe_are_tracked_with_one_pose(tmp_path_factory, tmp_path, monkeypatch):
+    """A sharp sequence without exposure times: the probe tracks blind and deblurs nothing, yet
+    gives samples; in the run, frames whose predicted blur is under half a pixel (the estimate is
+    short) are tracked with one pose, n = 1."""
+    path, _ = _generated(tmp_path_factory, "none")
+    seq, config = open_sequence(exposure_hidden_copy(path, tmp_path / "hidden")), load_config(None, SMALL_SET)
+
+    def no_deblur(*args, **kwargs):
+        raise AssertionError("the exposure probe deblurred a keyframe")
+
+    monkeypatch.setattr(rgbd, "deblur", no_deblur)
+    start = RGBDPipeline(seq.camera, config).start_state(seq)
+    assert start.exposure is not None and start.exposure.count >= 1 and start.exposure.fraction() < 0.15, start.exposure
+    monkeypatch.undo()
+    run_odometry(seq, tmp_path / "run", config, progress=False)
+    with open(tmp_path / "run" / "frames.csv", newline="") as fh:
+        n = [int(r["n_finest"]) for r in csv.DictReader(fh)][1:]
+    assert sum(k == 1 for k in n) >= 0.8 * len(n), n
 
 
 @pytest.mark.slow

@@ -27,13 +27,19 @@ from ..geometry import ExposureTrajectory, PinholeCamera, Pose, readout_fraction
 from ..tracking import Keyframe, exposure_from_velocity, track
 from .stats import keyframe_stats
 
-__all__ = ["ExposureEstimate", "RawFrame", "adaptive_n", "exposure_mode", "prior_off", "pick_pair", "pair_sample"]
+__all__ = ["ExposureEstimate", "RawFrame", "adaptive_n", "blind", "exposure_mode", "prior_off", "pick_pair", "pair_sample", "with_keyframe"]
 
 
 @functools.lru_cache(maxsize=16)
 def prior_off(config: TrackerConfig) -> TrackerConfig:
     """``config`` without the exposure-motion prior (one object per config: the tracker's caches hit)."""
     return dataclasses.replace(config, blur_prior=0.0)
+
+
+@functools.lru_cache(maxsize=16)
+def blind(config: TrackerConfig) -> TrackerConfig:
+    """``config`` blind to blur (one virtual frame, start = end), one object per config."""
+    return dataclasses.replace(config, blur_aware=False)
 
 
 @functools.lru_cache(maxsize=16)
@@ -67,6 +73,14 @@ class RawFrame:
     T_world_prev: Pose
     dt: float
     speed: float
+    keyframe: Keyframe | None = None  # the frame as a keyframe, made when it is first paired (``with_keyframe``)
+
+
+def with_keyframe(frame: RawFrame, camera: PinholeCamera, tracker: TrackerConfig) -> RawFrame:
+    """``frame`` with its image and depth as a keyframe, made once."""
+    if frame.keyframe is not None:
+        return frame
+    return dataclasses.replace(frame, keyframe=Keyframe.create(frame.image, frame.depth, camera, tracker))
 
 
 def pick_pair(recent: tuple[RawFrame, ...], current: RawFrame, ratio: float) -> tuple[RawFrame, RawFrame] | None:
@@ -106,13 +120,14 @@ def pair_sample(slow: RawFrame, fast: RawFrame, camera: PinholeCamera, tracker: 
     ℓ the extra blur the slow frame needs to match the fast one and ℓ₀ the same the other way
     round (none is needed: what it finds is the fit's floor, from noise and interpolation). None
     when the speeds, measured on the slow frame's points, differ by less than ``ratio`` or a
-    tracking fails."""
-    kf = Keyframe.create(slow.image, slow.depth, camera, tracker)
+    tracking fails. The frames' keyframes are made here unless they carry them (``with_keyframe``)."""
+    slow, fast = with_keyframe(slow, camera, tracker), with_keyframe(fast, camera, tracker)
+    kf = slow.keyframe
     s_slow, s_fast = _speed(kf, slow.T_world_mid.inverse(), slow), _speed(kf, slow.T_world_mid.inverse(), fast)
     if not (np.isfinite(s_slow) and np.isfinite(s_fast)) or s_fast < ratio * max(s_slow, 1e-9):
         return None
     extra = _extra_blur(slow, kf, fast, tracker, guess_s)
-    floor = _extra_blur(fast, Keyframe.create(fast.image, fast.depth, camera, tracker), slow, tracker, guess_s)
+    floor = _extra_blur(fast, fast.keyframe, slow, tracker, guess_s)
     if extra is None or floor is None:
         return None
     spread = float(np.sqrt(s_fast**2 - s_slow**2))

@@ -22,8 +22,9 @@ from ..deblur import choose_deblur_n, deblur, exposure_blur_px
 from ..geometry import ExposurePath, ExposureTrajectory, PinholeCamera, Pose, readout_fraction
 from ..image import quantize16
 from ..progress import bar
-from ..tracking import Keyframe, Status, TrackResult, constant_velocity_guess, exposure_from_velocity, track
-from .exposure import ExposureEstimate, RawFrame, adaptive_n, exposure_mode, pair_sample, pick_pair, prior_off
+from ..tracking import Keyframe, Status, TrackResult, constant_velocity_guess, exposure_from_velocity, predicted_blur_px, track
+from .exposure import (ExposureEstimate, RawFrame, adaptive_n, blind, exposure_mode, pair_sample, pick_pair, prior_off,
+                       with_keyframe)
 from .stats import PointStats, keyframe_stats
 from .state import ExposureReport, Fit, FrameOutcome, KeyframeState, NewKeyframe, PendingDeblur, RunState, Triptych
 
@@ -96,9 +97,9 @@ class RGBDPipeline:
 
     def start_state(self, seq, progress: bool = False) -> RunState:
         """The loop's first state. With an estimated exposure, the first ``odometry.exposure_probe``
-        frames are run once beforehand (nothing written; of the keyframes only the first, whose
-        deblurring gives the velocity, is deblurred) and the run starts from their pairs' samples
-        instead of the uninformative guess: its first keyframes are then deblurred along an
+        frames are run once beforehand (nothing written; tracked blind to blur, one pose a frame, no
+        keyframe deblurred: their pairs need only their poses and speeds) and the run starts from the
+        pairs' samples instead of the uninformative guess: its first keyframes are then deblurred along an
         estimated exposure, and those frames are not paired again. Deterministic, so ``--resume``
         repeats it."""
         k = min(self.config.odometry.exposure_probe, len(seq))
@@ -139,7 +140,8 @@ class RGBDPipeline:
         when it will not be deblurred."""
         cfg = self.config
         exposure = None if self.exposure_mode(frame) == "estimate" else self.exposure_of(RunState(), frame, 0.0)
-        wait = cfg.odometry.deblur_first_keyframe and cfg.tracker.blur_aware and frame.depth is not None and exposure != 0.0
+        wait = (cfg.odometry.deblur_first_keyframe and cfg.tracker.blur_aware and not self.probe and frame.depth is not None
+                and exposure != 0.0)
         return PendingDeblur(frame.image, frame.depth, exposure) if wait else None
 
     def tracker_config(self, frame, informed: bool, state: RunState | None = None) -> TrackerConfig:
@@ -149,11 +151,29 @@ class RGBDPipeline:
         whose exposure (in ``state``) is short, known or estimated, is tracked with adaptive n,
         which its small predicted blur keeps small."""
         tracker = self.config.tracker
+        if self.probe:
+            return blind(tracker)
         if not informed:
             return tracker if self.exposure_mode(frame) != "estimate" else prior_off(tracker)
         if tracker.blur_aware and state is not None and state.mids and self.short_exposure(state, frame):
             return adaptive_n(tracker)
         return tracker
+
+    def frame_tracker(self, state: RunState, frame, init: ExposureTrajectory, informed: bool, readout: float) -> TrackerConfig:
+        """The tracker's settings for this frame (:meth:`tracker_config`). A global-shutter frame is
+        tracked as sharp (one pose, start = end) when no velocity ``informed`` its guess (a path of
+        zero length is a stationary point of the blur model to first order: from it, start and end
+        barely separate, whatever n), or, with adaptive n, when its guess ``init`` blurs the
+        keyframe's points less than ``odometry.sharp_blur_px``."""
+        tracker = self.tracker_config(frame, informed, state)
+        if not tracker.blur_aware or readout > 0 or tracker.trajectory != "linear":
+            return tracker
+        if not informed:
+            return blind(tracker)
+        if tracker.n_mode != "adaptive":
+            return tracker
+        sharp = predicted_blur_px(state.keyframe.keyframe, init) < self.config.odometry.sharp_blur_px
+        return blind(tracker) if sharp else tracker
 
     def short_exposure(self, state: RunState, frame) -> bool:
         """Whether the frame's exposure is at most ``odometry.short_exposure`` of the frame interval,
@@ -195,8 +215,8 @@ class RGBDPipeline:
         if frame.depth is None or np.isfinite(frame.depth).any():  # else nothing to place the frame with
             init, informed = self.predict(state, frame)
             rho = self.frame_readout(state, frame)
-            first = track(state.keyframe.keyframe, frame.image, init, self.tracker_config(frame, informed, state), depth=frame.depth,
-                          readout=rho)
+            first = track(state.keyframe.keyframe, frame.image, init, self.frame_tracker(state, frame, init, informed, rho),
+                          depth=frame.depth, readout=rho)
             stats = self.frame_stats(state, first, init.middle() if informed else None) if first.status.ok else None
             result, fit = self.checked(state, frame, first, stats, informed)
             if state.pending is not None and result.status.ok:
@@ -289,21 +309,26 @@ class RGBDPipeline:
 
     def exposure_pairing(self, state: RunState, frame, T_w_mid: Pose, speed: float, dt: float):
         """(recent raw frames with this one, a sample from the pair of this frame and a recent one
-        whose speeds differ most, or None), for an estimated exposure. With a short estimate the
-        pair is tracked with adaptive n, chosen from an exposure of at least ``odometry.exposure_guess``
-        until the estimate has settled (``odometry.exposure_settled``), from the estimate after."""
+        whose speeds differ most, or None), for an estimated exposure. Before the first sample (n
+        from the guess's blur) and with a short estimate, the pair is tracked with adaptive n; with a
+        short one, chosen from an exposure of at least ``odometry.exposure_guess`` until the estimate
+        has settled (``odometry.exposure_settled``), from the estimate after."""
         odo = self.config.odometry
         current = RawFrame(frame.timestamp, frame.image, frame.depth, T_w_mid, state.mids[-1][1], dt, speed)
+        recent = (*state.recent, current)[-odo.exposure_pair_frames:]
         pair, sample = pick_pair(state.recent, current, odo.exposure_pair_ratio) if self.sample_due(state, frame.timestamp) else None, None
         if pair is not None:
+            pair = tuple(with_keyframe(f, self.camera, self.config.tracker) for f in pair)
+            made = {f.stamp: f for f in pair}
+            recent = tuple(made.get(f.stamp, f) for f in recent)
             est, tracker = self.estimate(state), self.config.tracker
             guess = est.seconds(pair[1].dt)
-            if self.short_exposure(state, frame):
+            if not est.count or self.short_exposure(state, frame):
                 tracker = adaptive_n(tracker)
-                if not est.settled(SETTLED_SAMPLES, odo.exposure_settled):
+                if est.count and not est.settled(SETTLED_SAMPLES, odo.exposure_settled):
                     guess = max(guess, odo.exposure_guess * pair[1].dt)
             sample = pair_sample(*pair, self.camera, tracker, guess, odo.exposure_pair_ratio)
-        return (*state.recent, current)[-odo.exposure_pair_frames:], sample
+        return recent, sample
 
     def _tracked(self, state: RunState, frame, index: int, result: TrackResult, informed: bool, fit: Fit,
                  stats: PointStats) -> tuple[RunState, FrameOutcome]:
@@ -312,7 +337,8 @@ class RGBDPipeline:
         T_w_kf, traj = state.keyframe.T_world_kf, result.trajectory
         T_w_mid = T_w_kf.compose(traj.middle())
         dt = frame.timestamp - state.mids[-1][0]
-        speed = stats.motion_px / dt if informed and dt > 0 and self.exposure_mode(frame) == "estimate" else None
+        paced = informed or state.dropped == 0  # else the interval since the last tracked frame spans drops
+        speed = stats.motion_px / dt if paced and dt > 0 and self.exposure_mode(frame) == "estimate" else None
         recent, sample = self.exposure_pairing(state, frame, T_w_mid, speed, dt) if speed is not None else (state.recent, None)
         report = self.exposure_report(state, frame, sample, dt, speed)
         state = state.replace(mids=(*state.mids, (frame.timestamp, T_w_mid))[-2:], tracked=state.tracked + 1, consecutive_drops=0,

@@ -329,6 +329,10 @@ class MonoConfig(Settings):
     init_corner_contrast: float = setting(8.0 / 255.0, "a corner needs about this step contrast on [0, 1] intensities (above noise)", POSITIVE)
     init_ransac_px: float = setting(2.0, "essential-matrix RANSAC: largest distance (px) of an inlier from its epipolar line", POSITIVE)
     init_min_inlier_ratio: float = setting(0.6, "fewer essential-matrix inliers than this fraction of the tracks: geometry failed", FRACTION)
+    # --- keyframes and restarts (odometry.mono, mono.keyframes)
+    keyframe_shift: float = setting(0.5, "weight of DSO's point-shift keyframe rule (1 = DSO's weights, 0 = off): a new keyframe also when the weighted RMS point shift, relative to width + height, exceeds 1", NONNEG)
+    ba_max_move: float = setting(0.02, "a bundle adjustment that moves the new keyframe's view of the window's points by more than this fraction of the image width (median) is run again without the points it dropped (undone if it moves that far again)", POSITIVE)
+    restart_motions: int = setting(9, "frame-to-frame motions kept: after a loss the one of median speed carries the last good pose to the new start, which keeps that speed", AT_LEAST_1)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -10,8 +10,12 @@ epipolar lines (``mono.candidates``; blur-aware, the sharp keyframes' patterns a
 frame's tracked exposure path first), and each new keyframe runs the back-end: ready candidates join
 the window, the windowed photometric bundle adjustment (``mono.ba``) refines poses, affine
 brightness and inverse depths, and the oldest keyframe is marginalised when the window is full.
-After ``reset_after_drops`` drops in a row the system initialises again from the last good pose, at
-the lost window's scale.
+After ``reset_after_drops`` drops in a row the system initialises again. The new start keeps the
+lost window's speed: the recent motion of median speed (``mono.motions``) carries the last good
+pose over the gap to the new reference frame, and the two-view start is scaled so that the camera
+moves at that speed. Besides the RGB-D pipeline's keyframe rules, DSO's point-shift rule
+(``mono.keyframes``) asks for keyframes, and the frame statistics are over the keyframe points in
+the frame's view (``odometry.inview``).
 """
 
 from __future__ import annotations
@@ -27,12 +31,15 @@ import numpy as np
 from ..deblur import exposure_blur_px
 from ..geometry import ExposureTrajectory, Pose, interpolate
 from ..image import delinearize, linearize, quantize16
-from ..mono.ba import bundle_adjust, marginalize
+from ..mono.ba import BAReport, bundle_adjust, marginalize
 from ..mono.candidates import FrameBlur, activate, select_candidates, trace
 from ..mono.depthmap import filled_depth, project_points, sparse_depth
 from ..mono.init import TwoView, TwoViewTracker
+from ..mono.keyframes import wants_keyframe
+from ..mono.motions import Motions, PoseAt
 from ..mono.window import Window, add_keyframe, add_points, world_points
-from ..tracking import Keyframe, Status, track
+from ..tracking import Keyframe, Status, TrackResult, track
+from .inview import ViewStats, in_view_stats
 from .rgbd import RGBDPipeline
 from .state import Fit, FrameOutcome, KeyframeState, NewKeyframe, RunState
 
@@ -58,7 +65,9 @@ class MonoState:
     reference: tuple[float, np.ndarray] | None = None  # (stamp, raw image) the initialiser started from
     tries: int = 0  # frames offered to the initialiser since its reference
     origin: Pose = dataclasses.field(default_factory=Pose.identity)  # the world pose the next initialisation starts at
-    depth: float = 1.0  # the median depth of the next initialisation's points (the world's scale)
+    depth: float = 1.0  # the median depth of the next initialisation's points when no speed is known (the world's scale)
+    motions: Motions = Motions()  # the recent frame-to-frame motions (kept over a restart)
+    lost: PoseAt | None = None  # the last good pose before the loss the next start follows
     window: Window | None = None
     slots: tuple[int, ...] = ()  # occupied window slots, oldest first
     stamps: tuple[float, ...] = ()  # their keyframes' stamps
@@ -74,11 +83,36 @@ class MonoState:
     def replace(self, **changes) -> "MonoState":
         return dataclasses.replace(self, **changes)
 
-    def restart(self, origin: Pose, depth: float | None = None) -> "MonoState":
+    def restart(self, origin: Pose, depth: float | None = None, lost: PoseAt | None = None) -> "MonoState":
         """Not initialised again, the next start at ``origin`` with its points' median depth ``depth``
-        (None: as before; the frame clock and counts kept)."""
-        return MonoState(origin=origin, depth=self.depth if depth is None else depth, initialisations=self.initialisations,
+        (None: as before) or, when motions are kept, following on from the last good pose ``lost``
+        (None: as before); the frame clock, counts and motions kept."""
+        return MonoState(origin=origin, depth=self.depth if depth is None else depth, motions=self.motions,
+                         lost=self.lost if lost is None else lost, initialisations=self.initialisations,
                          last_stamp=self.last_stamp, frame_dt=self.frame_dt)
+
+    def start_at(self, stamp: float) -> "MonoState":
+        """The next start's reference frame is at ``stamp``: after a loss, its pose is the last good
+        pose carried over the gap at the typical (median speed) recent motion."""
+        typical = self.motions.typical()
+        if self.lost is None or typical is None:
+            return self
+        return self.replace(origin=typical.carry(self.lost, stamp))
+
+    def start_scale(self, two_view: TwoView, dt: float) -> float:
+        """The factor a two-view start (median depth 1) is scaled by: after a loss, so that its
+        translation over ``dt`` seconds is at the typical recent speed; else ``depth``."""
+        typical = self.motions.typical()
+        length = float(np.linalg.norm(np.asarray(two_view.T_ref_cur.t)))
+        if self.lost is None or typical is None or not typical.speed > 0 or not length > 0 or not dt > 0:
+            return self.depth
+        return typical.speed * dt / length
+
+    def moved(self, mids: tuple) -> "MonoState":
+        """With the motion between the last two recent mid poses ``mids`` ((stamp, T_world_mid), ...) kept."""
+        if len(mids) < 2:
+            return self
+        return self.replace(motions=self.motions.add(PoseAt(*mids[-2]), PoseAt(*mids[-1])))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,7 +131,7 @@ class MonoPipeline(RGBDPipeline):
     def step(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
         t0 = time.perf_counter()
         frame = dataclasses.replace(frame, depth=None)
-        mono = state.backend or MonoState()
+        mono = state.backend or MonoState(motions=Motions(keep=self.config.mono.restart_motions))
         if mono.last_stamp is not None and frame.timestamp > mono.last_stamp:
             mono = mono.replace(frame_dt=frame.timestamp - mono.last_stamp)
         state = state.replace(backend=mono.replace(last_stamp=frame.timestamp))
@@ -106,6 +140,8 @@ class MonoPipeline(RGBDPipeline):
             state, outcome = self._initialise(state.replace(backend=mono), frame, index)
         else:
             state, outcome = self._track_mono(state, frame, index)
+        if outcome.tracked and state.backend.initialised and state.mids[-1][0] == frame.timestamp:
+            state = state.replace(backend=state.backend.moved(state.mids))
         return state, dataclasses.replace(outcome, seconds=time.perf_counter() - t0)
 
     # ------------------------------------------------------------------------ initialisation
@@ -120,13 +156,13 @@ class MonoPipeline(RGBDPipeline):
         if mono.initialiser is None or mono.tries >= cfg.init_max_frames:
             again = f" (no initialisation in {mono.tries} frames: starting again)" if mono.initialiser is not None else ""
             mono = mono.replace(initialiser=TwoViewTracker.start(frame.image, self.camera, cfg),
-                                reference=(frame.timestamp, frame.image), tries=0)
+                                reference=(frame.timestamp, frame.image), tries=0).start_at(frame.timestamp)
             return self._waiting(state.replace(backend=mono), frame, index, "initialising: reference frame" + again)
         initialiser, two_view = mono.initialiser.update(frame.image)
         mono = mono.replace(initialiser=initialiser, tries=mono.tries + 1)
         if two_view.restart:  # too few corners left to ever succeed: this frame is the new reference
             mono = mono.replace(initialiser=TwoViewTracker.start(frame.image, self.camera, cfg),
-                                reference=(frame.timestamp, frame.image), tries=0)
+                                reference=(frame.timestamp, frame.image), tries=0).start_at(frame.timestamp)
         state = state.replace(backend=mono)
         if not two_view.ok:
             return self._waiting(state, frame, index, f"initialising: {two_view.reason}")
@@ -162,7 +198,7 @@ class MonoPipeline(RGBDPipeline):
         points and the candidates that converge in this frame, and this frame tracked against it
         (blur-aware) from the two-view pose."""
         mono, cfg = state.backend, self.config
-        two_view = rescaled(two_view, mono.depth)
+        two_view = rescaled(two_view, mono.start_scale(two_view, frame.timestamp - mono.reference[0]))
         velocity, rho = self.two_view_path(state, frame, two_view)
         stamp, (image, sharp) = mono.reference[0], self._first_image(state, two_view, velocity, rho)
         window = Window.empty(cfg.mono.window, cfg.mono.points, self.camera.height, self.camera.width)
@@ -240,6 +276,18 @@ class MonoPipeline(RGBDPipeline):
         """A filled depth map of the frame at ``T_kf_mid`` (in the current keyframe) from the window's points."""
         return filled_depth(self.window_depth(state.backend, state.keyframe.T_world_kf.compose(T_kf_mid)))
 
+    def frame_stats(self, state: RunState, result: TrackResult, predicted: Pose | None) -> ViewStats:
+        """As the RGB-D pipeline's, but over the keyframe points in the frame's view at its mid pose
+        (``odometry.inview``), with DSO's point shift."""
+        kf = state.keyframe
+        path = result.trajectory.middle_row_path(result.diagnostics.get("readout", 0.0))
+        return in_view_stats(kf.keyframe, path, kf.T_world_kf.inverse().compose(state.mids[-1][1]), predicted)
+
+    def wants_keyframe(self, stats: ViewStats) -> bool:
+        """The RGB-D pipeline's keyframe rules, or DSO's point-shift rule (``mono.keyframe_shift``)."""
+        cam = self.camera
+        return super().wants_keyframe(stats) or wants_keyframe(stats.shift, cam.width, cam.height, self.config.mono.keyframe_shift)
+
     def _track_mono(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
         guess, _ = self.predict(state, frame)
         frame = dataclasses.replace(frame, depth=self.frame_depth(state, guess.middle()))
@@ -254,7 +302,9 @@ class MonoPipeline(RGBDPipeline):
 
     def _dropped(self, state: RunState, frame, index: int, result) -> tuple[RunState, FrameOutcome]:
         """A drop as in the RGB-D pipeline, but after ``reset_after_drops`` drops in a row the system
-        initialises again, from the last good pose (the scale of the new start is its own)."""
+        initialises again, following on from the last good pose at the recent speed
+        (``MonoState.start_at``, ``start_scale``; with no motions kept, at the last good pose and the
+        lost window's median depth seen from it)."""
         odo = self.config.odometry
         odd = result is not None and result.status == Status.IMPLAUSIBLE
         state = state.replace(dropped=state.dropped + 1, consecutive_drops=state.consecutive_drops + 1,
@@ -264,7 +314,7 @@ class MonoPipeline(RGBDPipeline):
             origin = state.mids[-1][1]
             depth = self.window_depth(state.backend, origin)
             depth = float(np.median(depth[np.isfinite(depth)])) if np.isfinite(depth).any() else None  # the next start keeps the scale
-            state = state.replace(backend=state.backend.restart(origin, depth),
+            state = state.replace(backend=state.backend.restart(origin, depth, PoseAt(state.mids[-1][0], origin)),
                                   keyframe=None, pending=None, consecutive_drops=0, fits=())
             note = f"lost after {odo.reset_after_drops} drops: initialising again"
         status = (result.status if result is not None else Status.TOO_FEW_POINTS).name.lower()
@@ -336,7 +386,7 @@ class MonoPipeline(RGBDPipeline):
         cands[slot] = select_candidates(image, cfg.mono.candidates, cfg.mono)
         mono = self._activate(mono.replace(window=window, slots=(*mono.slots, slot), stamps=(*mono.stamps, new.stamp),
                                            candidates=tuple(cands)), new.T_world_kf)
-        window, report = bundle_adjust(mono.window, self.camera, cfg.mono)
+        window, report, note = self._adjusted(mono.window, slot, outcome.note)
         mono = mono.replace(window=window)
         T_new = _slot_pose(window, slot)
         correction = T_new.compose(new.T_world_kf.inverse())
@@ -344,8 +394,26 @@ class MonoPipeline(RGBDPipeline):
         kf = KeyframeState(self.make_keyframe(state, new.image, None, T_new), T_new, new.stamp)
         mids = tuple((t, correction.compose(T)) for t, T in state.mids)
         state = state.replace(keyframe=kf, mids=mids)
-        outcome = dataclasses.replace(outcome, points=cloud, backend_seconds=time.perf_counter() - t0, ba=report)
+        outcome = dataclasses.replace(outcome, points=cloud, backend_seconds=time.perf_counter() - t0, ba=report, note=note)
         return state, outcome
+
+    def _adjusted(self, window: Window, slot: int, note: str) -> tuple[Window, BAReport, str]:
+        """(window, report, note): ``window`` bundle-adjusted. When the adjustment turns the new
+        keyframe ``slot``'s view of the points by more than ``mono.ba_max_move`` of the width (its
+        pose fitted to newly activated points that the adjustment then drops as outliers), it is
+        run again from the start without those points; when that one jumps too, the window is left
+        unadjusted (without them)."""
+        cfg, limit = self.config.mono, self.config.mono.ba_max_move * self.camera.width
+        adjusted, report = bundle_adjust(window, self.camera, cfg)
+        moved = view_moved_px(self.camera, window, adjusted, slot)
+        if moved <= limit:
+            return adjusted, report, note
+        kept = eqx.tree_at(lambda w: w.point_valid, window, window.point_valid & adjusted.point_valid)
+        again, report = bundle_adjust(kept, self.camera, cfg)
+        retried = view_moved_px(self.camera, kept, again, slot)
+        what = "adjusted again without its dropped points" if retried <= limit else f"undone (again {retried:.0f} px)"
+        note = (note + "; " if note else "") + f"bundle adjustment {what}: the new keyframe's view moved {moved:.0f} px"
+        return (again if retried <= limit else kept), report, note
 
     def _marginalize_oldest(self, mono: MonoState) -> tuple[MonoState, PointCloud]:
         """The oldest keyframe leaves the window: its points are returned (for points.ply) and its
@@ -372,12 +440,27 @@ class MonoPipeline(RGBDPipeline):
         return self.slot_points(mono) if mono is not None and mono.initialised else None
 
 
-def rescaled(two_view: TwoView, depth: float) -> TwoView:
-    """A two-view start (median point depth 1) scaled to median depth ``depth``."""
-    if depth == 1.0:
+def rescaled(two_view: TwoView, scale: float) -> TwoView:
+    """A two-view start (median point depth 1) scaled by ``scale``: its translation and point depths
+    (the median depth becomes ``scale``; the bearings and rotation are unchanged)."""
+    if scale == 1.0:
         return two_view
     T = two_view.T_ref_cur
-    return dataclasses.replace(two_view, T_ref_cur=Pose(T.q, T.t * depth), idepth=(two_view.idepth / depth).astype(np.float32))
+    return dataclasses.replace(two_view, T_ref_cur=Pose(T.q, T.t * scale), idepth=(two_view.idepth / scale).astype(np.float32))
+
+
+def view_moved_px(camera, before: Window, after: Window, slot: int) -> float:
+    """The median distance (pixels) between where keyframe ``slot`` sees the window's points (as
+    ``after`` has them) from its pose in ``before`` and from its pose in ``after``; 0 when none is in
+    view of both."""
+    xyz, _ = world_points(after, camera)
+    xyz = np.asarray(xyz, np.float32)
+    if not len(xyz):
+        return 0.0
+    x0, _, ok0 = project_points(camera, _slot_pose(before, slot).inverse(), xyz)
+    x1, _, ok1 = project_points(camera, _slot_pose(after, slot).inverse(), xyz)
+    both = ok0 & ok1
+    return float(np.median(np.linalg.norm(x1[both] - x0[both], axis=1))) if both.any() else 0.0
 
 
 def typical_idepth(window: Window, slot: int) -> float:

@@ -239,6 +239,10 @@ class RGBDPipeline:
         path = result.trajectory.middle_row_path(result.diagnostics.get("readout", 0.0))
         return keyframe_stats(kf.keyframe, path, kf.T_world_kf.inverse().compose(state.mids[-1][1]), predicted)
 
+    def wants_keyframe(self, stats: PointStats) -> bool:
+        """Whether a tracked frame with these :meth:`frame_stats` becomes the next keyframe (``needs_keyframe``)."""
+        return needs_keyframe(stats, self.camera.width, self.config.odometry)
+
     def checked(self, state: RunState, frame, result: TrackResult, stats: PointStats | None,
                 informed: bool) -> tuple[TrackResult, Fit | None]:
         """A usable result's fit (its distance from the prediction only when ``informed`` by a
@@ -345,7 +349,7 @@ class RGBDPipeline:
                               exposure=report.estimate or state.exposure, recent=recent,
                               fits=(*state.fits, fit)[-self.config.odometry.reject_window:])
         new = None
-        if needs_keyframe(stats, self.camera.width, self.config.odometry) and frame.depth is not None:
+        if self.wants_keyframe(stats) and frame.depth is not None:
             state, new = self._new_keyframe(state, frame, traj, T_w_mid, stats.blur_px, result.diagnostics.get("readout", 0.0))
         outcome = FrameOutcome(index, frame.timestamp, result.status.name.lower(), T_w_mid, T_w_kf.compose(traj.start),
                                T_w_kf.compose(traj.end), new_keyframe=new, result=result, exposure=report)

@@ -259,6 +259,8 @@ class OdometryConfig(Settings):
     exposure_window: int = setting(30, "estimated exposure: weighted median over this many recent samples", AT_LEAST_1)
     exposure_pair_ratio: float = setting(1.3, "estimated exposure: a sample pairs two raw frames whose speeds differ by this factor", at_least(1.05))
     exposure_pair_frames: int = setting(6, "estimated exposure: a frame is paired with one of this many recent frames", AT_LEAST_1)
+    exposure_pair_levels: int = setting(2, "estimated exposure: a pair's frames are tracked against each other on this many finest "
+                                        "pyramid levels (both are tracked already: their relative pose needs no capture range)", AT_LEAST_1)
     short_exposure: float = setting(0.25, "a frame exposed for at most this fraction of the frame interval (known or estimated), "
                                     "with a velocity to predict its blur, is tracked with adaptive n (tracker.n_mode)", FRACTION)
     sharp_blur_px: float = setting(0.5, "a frame tracked with adaptive n whose predicted blur is below this (full-resolution px) is "

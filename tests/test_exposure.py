@@ -225,3 +225,22 @@ def test_resumed_estimate_continues_as_the_uninterrupted_run(strong, tmp_path):
     assert resumed["exposure_ms"] == pytest.approx(full["exposure_ms"], rel=1e-3)
     a, b = (np.loadtxt(tmp_path / name / "trajectory.txt") for name in ("full", "resumed"))
     assert a.shape == b.shape and np.abs(a[:, 1:4] - b[:, 1:4]).max() < 1e-4
+
+
+def test_pairs_are_tracked_without_the_prior_on_the_finest_levels(strong, tmp_path, monkeypatch):
+    """A pair's frames are tracked against each other without the exposure-motion prior, on the
+    ``odometry.exposure_pair_levels`` finest pyramid levels only (both frames are tracked already)."""
+    import mbavo_jax.odometry.exposure as exposure
+
+    seen, track = [], exposure.track
+
+    def recording(keyframe, frame, init, config, **kwargs):
+        seen.append((config.levels, config.blur_prior))
+        return track(keyframe, frame, init, config, **kwargs)
+
+    monkeypatch.setattr(exposure, "track", recording)
+    seq = open_sequence(exposure_hidden_copy(strong[0], tmp_path / "hidden"))
+    config = load_config(None, [*SMALL_SET, "odometry.exposure_pair_levels=1"])
+    start = RGBDPipeline(seq.camera, config).start_state(seq)
+    assert start.exposure is not None and start.exposure.count >= 1
+    assert seen and set(seen) == {(1, 0.0)}, seen

@@ -27,13 +27,20 @@ from ..geometry import ExposureTrajectory, PinholeCamera, Pose, readout_fraction
 from ..tracking import Keyframe, exposure_from_velocity, track
 from .stats import keyframe_stats
 
-__all__ = ["ExposureEstimate", "RawFrame", "adaptive_n", "blind", "exposure_mode", "prior_off", "pick_pair", "pair_sample", "with_keyframe"]
+__all__ = ["ExposureEstimate", "RawFrame", "adaptive_n", "blind", "exposure_mode", "prior_off", "pair_tracker", "pick_pair", "pair_sample", "with_keyframe"]
 
 
 @functools.lru_cache(maxsize=16)
 def prior_off(config: TrackerConfig) -> TrackerConfig:
     """``config`` without the exposure-motion prior (one object per config: the tracker's caches hit)."""
     return dataclasses.replace(config, blur_prior=0.0)
+
+
+@functools.lru_cache(maxsize=16)
+def pair_tracker(config: TrackerConfig, levels: int) -> TrackerConfig:
+    """``config`` as a pair's frames are tracked against each other: without the exposure-motion
+    prior, on at most ``levels`` finest pyramid levels; one object per config."""
+    return dataclasses.replace(prior_off(config), levels=min(levels, config.levels))
 
 
 @functools.lru_cache(maxsize=16)
@@ -103,25 +110,27 @@ def _speed(kf: Keyframe, T_ref_world: Pose, frame: RawFrame) -> float:
 
 def _extra_blur(ref: RawFrame, kf: Keyframe, other: RawFrame, tracker: TrackerConfig, guess_s: float) -> float | None:
     """The blur length (px, on ``kf``'s points) that the raw frame ``ref`` needs to match the raw
-    frame ``other``: ``other`` tracked against it without the prior, from ``guess_s`` exposure (plus
-    the readout) at ``other``'s velocity; the middle row's blur; None when the tracking fails."""
+    frame ``other``: ``other`` tracked against it (``tracker``: :func:`pair_tracker`), from ``guess_s``
+    exposure (plus the readout) at ``other``'s velocity; the middle row's blur; None when the tracking fails."""
     T_ref = ref.T_world_mid.inverse()
     mid = T_ref.compose(other.T_world_mid)
     rho = readout_fraction(tracker.readout_s, guess_s)
     path = exposure_from_velocity(other.T_world_prev.inverse().compose(other.T_world_mid), other.dt, guess_s + tracker.readout_s)
     res = track(kf, other.image, ExposureTrajectory(mid.compose(path.start), mid.compose(path.end)),
-                prior_off(tracker), depth=other.depth, readout=rho)
+                tracker, depth=other.depth, readout=rho)
     return keyframe_stats(kf, res.trajectory.middle_row_path(rho)).blur_px if res.status.ok else None
 
 
 def pair_sample(slow: RawFrame, fast: RawFrame, camera: PinholeCamera, tracker: TrackerConfig, guess_s: float,
-                ratio: float) -> tuple[float, float] | None:
+                ratio: float, levels: int | None = None) -> tuple[float, float] | None:
     """(exposure s, weight px) of a pair of raw frames: e = √(ℓ² − ℓ₀²) / √(s_fast² − s_slow²), with
     ℓ the extra blur the slow frame needs to match the fast one and ℓ₀ the same the other way
     round (none is needed: what it finds is the fit's floor, from noise and interpolation). None
     when the speeds, measured on the slow frame's points, differ by less than ``ratio`` or a
-    tracking fails. The frames' keyframes are made here unless they carry them (``with_keyframe``)."""
+    tracking fails. The tracks use :func:`pair_tracker` (``levels``: finest levels, None: all). The
+    frames' keyframes are made here unless they carry them (``with_keyframe``)."""
     slow, fast = with_keyframe(slow, camera, tracker), with_keyframe(fast, camera, tracker)
+    tracker = pair_tracker(tracker, levels or tracker.levels)
     kf = slow.keyframe
     s_slow, s_fast = _speed(kf, slow.T_world_mid.inverse(), slow), _speed(kf, slow.T_world_mid.inverse(), fast)
     if not (np.isfinite(s_slow) and np.isfinite(s_fast)) or s_fast < ratio * max(s_slow, 1e-9):

@@ -331,7 +331,7 @@ class RGBDPipeline:
                 tracker = adaptive_n(tracker)
                 if est.count and not est.settled(SETTLED_SAMPLES, odo.exposure_settled):
                     guess = max(guess, odo.exposure_guess * pair[1].dt)
-            sample = pair_sample(*pair, self.camera, tracker, guess, odo.exposure_pair_ratio)
+            sample = pair_sample(*pair, self.camera, tracker, guess, odo.exposure_pair_ratio, odo.exposure_pair_levels)
         return recent, sample
 
     def _tracked(self, state: RunState, frame, index: int, result: TrackResult, informed: bool, fit: Fit,

@@ -123,14 +123,10 @@ def test_a_restart_keeps_the_speed_of_the_lost_window():
     assert MonoState(depth=4.0).start_scale(two_view, 0.3) == 4.0  # no speed known: the lost window's depth
 
 
-def test_a_bundle_adjustment_that_turns_the_new_keyframe_away_is_measured_in_pixels():
-    """``view_moved_px``: the new keyframe turned by 9 degrees (as a bundle adjustment on the KITTI clip
-    did) moves its view of the window's points by ~21 px (f = 131 px), beyond ``mono.ba_max_move``
-    of the 160 px width; a 0.1 degree adjustment stays far below it."""
-    import dataclasses
-
+def _two_keyframes_with_points():
+    """(camera, window, slot of the new keyframe): a 160x120 window with a host keyframe at the
+    origin, a new one 0.2 ahead, and 24 points of the host at inverse depth 0.2."""
     from mbavo_jax.mono.window import Window, add_keyframe, add_points
-    from mbavo_jax.odometry.mono import view_moved_px
 
     cam = camera(160, 120, 131.0)
     window = Window.empty(3, 64, 120, 160)
@@ -138,6 +134,18 @@ def test_a_bundle_adjustment_that_turns_the_new_keyframe_away_is_measured_in_pix
     window, new = add_keyframe(window, np.zeros((120, 160), np.float32), moved(t=(0.0, 0.0, 0.2)))
     pixels = np.stack(np.meshgrid(np.arange(20.0, 140.0, 20.0), np.arange(20.0, 100.0, 20.0)), -1).reshape(-1, 2).astype(np.float32)
     window, _ = add_points(window, host, pixels, np.full(len(pixels), 0.2, np.float32))
+    return cam, window, new
+
+
+def test_a_bundle_adjustment_that_turns_the_new_keyframe_away_is_measured_in_pixels():
+    """``view_moved_px``: the new keyframe turned by 9 degrees (as a bundle adjustment on the KITTI clip
+    did) moves its view of the window's points by ~21 px (f = 131 px), beyond ``mono.ba_max_move``
+    of the 160 px width; a 0.1 degree adjustment stays far below it."""
+    import dataclasses
+
+    from mbavo_jax.odometry.mono import view_moved_px
+
+    cam, window, new = _two_keyframes_with_points()
 
     def turned(deg):
         T = moved(t=(0.0, 0.0, 0.2)).compose(moved(deg=deg))
@@ -157,14 +165,8 @@ def test_a_bundle_adjustment_that_jumps_runs_again_without_the_points_it_dropped
 
     import mbavo_jax.odometry.mono as om
     from mbavo_jax.mono.ba import BAReport
-    from mbavo_jax.mono.window import Window, add_keyframe, add_points
 
-    cam = camera(160, 120, 131.0)
-    window = Window.empty(3, 64, 120, 160)
-    window, host = add_keyframe(window, np.zeros((120, 160), np.float32), Pose.identity())
-    window, new = add_keyframe(window, np.zeros((120, 160), np.float32), moved(t=(0.0, 0.0, 0.2)))
-    pixels = np.stack(np.meshgrid(np.arange(20.0, 140.0, 20.0), np.arange(20.0, 100.0, 20.0)), -1).reshape(-1, 2).astype(np.float32)
-    window, _ = add_points(window, host, pixels, np.full(len(pixels), 0.2, np.float32))
+    cam, window, new = _two_keyframes_with_points()
     n = int(np.asarray(window.point_valid).sum())
     calls = []
     report = BAReport(*[jnp.zeros((), jnp.float32)] * 4, *[jnp.zeros((), jnp.int32)] * 4)

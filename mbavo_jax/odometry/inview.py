@@ -13,14 +13,11 @@ from __future__ import annotations
 import dataclasses
 
 import jax
-import jax.numpy as jnp
 
-from ..blur import blur_lengths
 from ..geometry import ExposureTrajectory, Pose
-from ..masked import count, masked_mean
 from ..mono.keyframes import Shift, point_shift
 from ..tracking import Keyframe
-from .stats import PointStats
+from .stats import PointStats, point_view
 
 __all__ = ["ViewStats", "in_view_stats"]
 
@@ -34,22 +31,9 @@ class ViewStats(PointStats):
 
 @jax.jit
 def _in_view_stats(cam, pixels, depths, valid, traj: ExposureTrajectory, prev: Pose, predicted: Pose):
-    """Flow, visible fraction, blur, motion, jump and the two shifts, means over the points in view."""
-    ok_d = valid & jnp.isfinite(depths) & (depths > 0)
-    X = jax.vmap(cam.backproject)(pixels, jnp.where(ok_d, depths, 1.0))
-    T_mid_kf = traj.middle().inverse()
-    Xc = jax.vmap(T_mid_kf.apply)(X)
-    front = Xc[:, 2] > 1e-6
-    x = jax.vmap(cam.project)(jnp.where(front[:, None], Xc, jnp.array([0.0, 0.0, 1.0])))
-    inside = ok_d & front & jax.vmap(cam.in_image)(x)
-    flow = masked_mean(jnp.linalg.norm(x - pixels, axis=1), inside)
-    lengths, ok = blur_lengths(cam, pixels, depths, traj)
-    motion, moved = blur_lengths(cam, pixels, depths, ExposureTrajectory(prev, traj.middle()))
-    jump, seen = blur_lengths(cam, pixels, depths, ExposureTrajectory(predicted, traj.middle()))
-    visible = inside.sum().astype(flow.dtype) / count(valid, flow.dtype)
-    shift_t, shift_rt = point_shift(cam, pixels, X, T_mid_kf, inside)
-    means = (masked_mean(lengths, ok & inside), masked_mean(motion, moved & inside), masked_mean(jump, seen & inside))
-    return flow, visible, *means, shift_t, shift_rt
+    """Flow, visible fraction, blur, motion, jump (``stats.point_view`` in view) and the two shifts."""
+    view = point_view(cam, pixels, depths, valid, traj, prev, predicted, in_view=True)
+    return *view.values, *point_shift(cam, pixels, view.X, view.T_mid_kf, view.inside)
 
 
 def in_view_stats(kf: Keyframe, traj: ExposureTrajectory, prev: Pose | None = None, predicted: Pose | None = None) -> ViewStats:

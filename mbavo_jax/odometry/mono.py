@@ -38,7 +38,7 @@ from ..mono.init import TwoView, TwoViewTracker
 from ..mono.keyframes import wants_keyframe
 from ..mono.motions import Motions, PoseAt
 from ..mono.window import Window, add_keyframe, add_points, world_points
-from ..tracking import Keyframe, Status, TrackResult, track
+from ..tracking import Keyframe, Status, track
 from .inview import ViewStats, in_view_stats
 from .rgbd import RGBDPipeline
 from .state import Fit, FrameOutcome, KeyframeState, NewKeyframe, RunState
@@ -276,12 +276,10 @@ class MonoPipeline(RGBDPipeline):
         """A filled depth map of the frame at ``T_kf_mid`` (in the current keyframe) from the window's points."""
         return filled_depth(self.window_depth(state.backend, state.keyframe.T_world_kf.compose(T_kf_mid)))
 
-    def frame_stats(self, state: RunState, result: TrackResult, predicted: Pose | None) -> ViewStats:
+    def point_stats(self, keyframe: Keyframe, path: ExposureTrajectory, prev: Pose, predicted: Pose | None) -> ViewStats:
         """As the RGB-D pipeline's, but over the keyframe points in the frame's view at its mid pose
         (``odometry.inview``), with DSO's point shift."""
-        kf = state.keyframe
-        path = result.trajectory.middle_row_path(result.diagnostics.get("readout", 0.0))
-        return in_view_stats(kf.keyframe, path, kf.T_world_kf.inverse().compose(state.mids[-1][1]), predicted)
+        return in_view_stats(keyframe, path, prev, predicted)
 
     def wants_keyframe(self, stats: ViewStats) -> bool:
         """The RGB-D pipeline's keyframe rules, or DSO's point-shift rule (``mono.keyframe_shift``)."""

@@ -237,7 +237,11 @@ class RGBDPipeline:
         blur is the middle row's (the readout's part of the path left out)."""
         kf = state.keyframe
         path = result.trajectory.middle_row_path(result.diagnostics.get("readout", 0.0))
-        return keyframe_stats(kf.keyframe, path, kf.T_world_kf.inverse().compose(state.mids[-1][1]), predicted)
+        return self.point_stats(kf.keyframe, path, kf.T_world_kf.inverse().compose(state.mids[-1][1]), predicted)
+
+    def point_stats(self, keyframe: Keyframe, path: ExposurePath, prev: Pose, predicted: Pose | None) -> PointStats:
+        """The statistics :meth:`frame_stats` computes (``keyframe_stats``; poses relative to the keyframe)."""
+        return keyframe_stats(keyframe, path, prev, predicted)
 
     def wants_keyframe(self, stats: PointStats) -> bool:
         """Whether a tracked frame with these :meth:`frame_stats` becomes the next keyframe (``needs_keyframe``)."""

@@ -27,7 +27,7 @@ from ..geometry.pose import Pose
 from ..image import bilinear
 
 __all__ = ["Prior", "Window", "VARS", "add_keyframe", "add_points", "insert_points", "world_points", "points_of",
-           "pose_delta", "set_slot_pose", "padded_length", "pad_rows"]
+           "pose_delta", "set_slot_pose", "padded_length", "pad_rows", "frame_affine", "relative_affine"]
 
 VARS = 8  # variables per keyframe: pose increment [Δr (3), Δt (3)] (``Pose.plus``), affine [Δa, Δb]
 
@@ -109,6 +109,21 @@ class Window(eqx.Module):
     @property
     def capacity(self) -> int:
         return self.idepth.shape[0]
+
+
+def frame_affine(reference: Float[Array, "2"], tracked: Float[Array, "2"]) -> Float[Array, "2"]:
+    """The window's affine brightness (a_f, b_f) of a frame that the tracker fitted as e^a · I_ref + b
+    (``tracked`` = (a, b)) against the keyframe whose window affine is ``reference`` = (a_r, b_r):
+    since I_ref ≈ e^(a_r − a_h) (I_h − b_h) + b_r for every keyframe h, the frame is
+    e^(a_f − a_h) (I_h − b_h) + b_f with a_f = a_r + a and b_f = b + e^a b_r."""
+    return jnp.stack([reference[0] + tracked[0], tracked[1] + jnp.exp(tracked[0]) * reference[1]])
+
+
+def relative_affine(target: Float[Array, "2"], host: Float[Array, "2"]) -> Float[Array, "2"]:
+    """(a, b) with I_target ≈ e^a · I_host + b for window affines ``target`` and ``host``:
+    a = a_t − a_h, b = b_t − e^a b_h (the bundle adjustment's model, module text)."""
+    a = target[0] - host[0]
+    return jnp.stack([a, target[1] - jnp.exp(a) * host[1]])
 
 
 def set_slot_pose(poses: Pose, slot, pose: Pose) -> Pose:

@@ -37,7 +37,7 @@ from ..mono.depthmap import filled_depth, project_points, sparse_depth
 from ..mono.init import TwoView, TwoViewTracker
 from ..mono.keyframes import wants_keyframe
 from ..mono.motions import Motions, PoseAt
-from ..mono.window import Window, add_keyframe, add_points, world_points
+from ..mono.window import Window, add_keyframe, add_points, frame_affine, relative_affine, world_points
 from ..tracking import Keyframe, Status, track
 from .inview import ViewStats, in_view_stats
 from .rgbd import RGBDPipeline
@@ -118,10 +118,12 @@ class MonoState:
 @dataclasses.dataclass(frozen=True)
 class MonoPipeline(RGBDPipeline):
     """Blur-aware monocular visual odometry: the blur-aware tracker over a windowed photometric
-    bundle adjustment of deblurred keyframes (depth, when the sequence has it, is not used)."""
+    bundle adjustment of deblurred keyframes (depth, when the sequence has it, is not used; keyframes
+    are deblurred with ``mono.deblur_regularization``)."""
 
     def __post_init__(self):
-        object.__setattr__(self, "config", self.config.replace(tracker=dict(depth_weight=0.0)))
+        config = self.config.replace(tracker=dict(depth_weight=0.0), deblur=dict(regularization=self.config.mono.deblur_regularization))
+        object.__setattr__(self, "config", config)
 
     def start_state(self, seq, progress: bool = False) -> RunState:
         """A fresh state: the RGB-D pipeline's exposure probe is not run (the monocular start has no
@@ -333,11 +335,15 @@ class MonoPipeline(RGBDPipeline):
     def traced(self, mono: MonoState, image, T_world_frame: Pose, affine=(0.0, 0.0), path: ExposureTrajectory | None = None,
                readout: float = 0.0) -> MonoState:
         """``mono`` with each window keyframe's candidates searched along their epipolar lines in
-        ``image`` (display values) seen from ``T_world_frame``. ``path``: the frame's exposure path
-        (``T_world_*``, readout fraction ``readout``) when the keyframes are sharp and the frame is
-        blurry: the keyframes' patterns are blurred along it before they are searched for."""
+        ``image`` (display values) seen from ``T_world_frame``. ``affine``: the tracker's (a, b) of the
+        frame against its reference, the window's newest keyframe; each keyframe's candidates are
+        matched under the frame's brightness relative to that keyframe (``mono.window.frame_affine``,
+        ``relative_affine``). ``path``: the frame's exposure path (``T_world_*``, readout fraction
+        ``readout``) when the keyframes are sharp and the frame is blurry: the keyframes' patterns
+        are blurred along it before they are searched for."""
         image = linearize(image, self.config.tracker.response_gamma)
         T_frame_world = T_world_frame.inverse()
+        frame_ab = frame_affine(mono.window.affine[mono.slots[-1]], jnp.asarray(affine, mono.window.affine.dtype))
         cands = list(mono.candidates)
         for slot in mono.slots:
             if cands[slot] is None:
@@ -346,7 +352,7 @@ class MonoPipeline(RGBDPipeline):
             blur = None if path is None else FrameBlur.create(path.seen_from(T_world_host.inverse()), readout,
                                                               typical_idepth(mono.window, slot))
             cands[slot] = trace(cands[slot], mono.window.images[slot], image, self.camera, T_frame_world.compose(T_world_host),
-                                np.asarray(affine, np.float32), self.config.mono, blur)
+                                relative_affine(frame_ab, mono.window.affine[slot]), self.config.mono, blur)
         return mono.replace(candidates=tuple(cands))
 
     def _replace_images(self, mono: MonoState, images) -> MonoState:
@@ -370,16 +376,19 @@ class MonoPipeline(RGBDPipeline):
         return mono.replace(window=window, candidates=tuple(cands))
 
     def _backend(self, state: RunState, frame, outcome: FrameOutcome) -> tuple[RunState, FrameOutcome]:
-        """A new keyframe joins the window (the oldest marginalised first when it is full), ready
-        candidates become points, the window is bundle-adjusted, and the tracker's keyframe and the
-        recent poses follow the adjusted poses."""
+        """A new keyframe joins the window (the oldest marginalised first when it is full) with the
+        affine brightness its tracking found against the newest keyframe (``mono.window.frame_affine``),
+        ready candidates become points, the window is bundle-adjusted, and the tracker's keyframe and
+        the recent poses follow the adjusted poses."""
         t0 = time.perf_counter()
         mono, cfg, new = state.backend, self.config, outcome.new_keyframe
+        tracked = outcome.result.diagnostics.get("affine", (0.0, 0.0)) if outcome.result is not None else (0.0, 0.0)
+        affine = frame_affine(mono.window.affine[mono.slots[-1]], jnp.asarray(tracked, mono.window.affine.dtype))
         cloud = None
         if len(mono.slots) >= cfg.mono.window:
             mono, cloud = self._marginalize_oldest(mono)
         image = linearize(new.image, cfg.tracker.response_gamma)
-        window, slot = add_keyframe(mono.window, image, new.T_world_kf)
+        window, slot = add_keyframe(mono.window, image, new.T_world_kf, affine)
         cands = list(mono.candidates)
         cands[slot] = select_candidates(image, cfg.mono.candidates, cfg.mono)
         mono = self._activate(mono.replace(window=window, slots=(*mono.slots, slot), stamps=(*mono.stamps, new.stamp),

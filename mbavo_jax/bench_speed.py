@@ -1,7 +1,10 @@
 """``mbavo bench speed``: where the whole loop's time goes, start-up with and without the compilation
 cache, and memory over a long run.
 
-* profile: one run of ``mbavo track`` under cProfile, its wall time split into tracking, deblurring,
+* timing: our loop and the same loop blind to blur (n = 1), unprofiled, run in turns in one process
+  after a warm-up of each (so that tracing and compilation are not counted); the ratios are of
+  their medians (cProfile's overhead falls unevenly on Python-heavy paths, so it gives no ratio);
+* profile: one more run of ours under cProfile, its wall time split into tracking, deblurring,
   keyframe creation, the monocular back-end, reading frames and writing outputs (the rest is the
   loop's own bookkeeping), and the seconds spent compiling (inside those parts);
 * start-up: ``mbavo track`` twice in fresh processes on one cache folder: the first compiles every
@@ -17,6 +20,7 @@ import csv
 import json
 import pathlib
 import pstats
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -24,7 +28,7 @@ import time
 
 from .config import BenchConfig, RunConfig
 
-__all__ = ["PROFILE_PARTS", "profile_run", "startup_runs", "memory_growth", "speed_benchmark", "format_speed_table", "main_speed"]
+__all__ = ["PROFILE_PARTS", "profile_run", "timed_runs", "startup_runs", "memory_growth", "speed_benchmark", "format_speed_table", "main_speed"]
 
 # part of the loop -> the functions (file suffix, name) whose cumulative time it is
 PROFILE_PARTS = {
@@ -102,23 +106,31 @@ def memory_growth(run_dir, early: int = 100) -> dict:
             "ratio": b / a}
 
 
-def _warm_profile(seq, out: pathlib.Path, overrides: list[str], frames: int) -> dict:
-    """:func:`profile_run` of ``seq``'s first ``frames`` frames after the same run once in this
-    process (so that tracing and compilation, which the start-up runs measure, are not counted)."""
+def timed_runs(seq, out, variants: dict[str, list[str]], frames: int, reps: int) -> dict[str, list[float]]:
+    """Wall seconds of ``reps`` unprofiled ``run_odometry`` calls of each variant (its ``--set``
+    overrides) on ``seq``'s first ``frames`` frames, the variants in turns, after one warm-up run of
+    each in this process (tracing and compilation are the start-up runs' to measure)."""
     from .config import calibration_of, load_config
     from .odometry import run_odometry
 
-    config = load_config(None, overrides, calibration_of(seq.meta))
-    run_odometry(seq, out / "warm-up", config, max_frames=frames, progress=False)
-    return profile_run(seq, out / "run", config, max_frames=frames)
+    configs = {name: load_config(None, o, calibration_of(seq.meta)) for name, o in variants.items()}
+    seconds = {name: [] for name in variants}
+    for rep in range(reps + 1):
+        for name, config in configs.items():
+            t0 = time.perf_counter()
+            run_odometry(seq, pathlib.Path(out) / name / f"run{rep}", config, max_frames=frames, progress=False)
+            if rep:
+                seconds[name].append(time.perf_counter() - t0)
+    return seconds
 
 
 def speed_benchmark(cfg: BenchConfig, quiet: bool = False) -> dict:
     """Per blur preset of ``cfg.preset`` (generated at ``cfg.width`` x ``cfg.height``, ``cfg.frames``
     frames; also without its exposure metadata for those named in ``cfg.hide_exposure``): our whole
-    loop under the profile, and the same loop blind to blur (n = 1), each after a warm-up run in the
-    same process; Open3D hybrid's frame-to-frame odometry on the same frames; and, with
-    ``cfg.startup``, the start-up of fresh processes with an empty cache, a full one and none."""
+    loop and the same loop blind to blur (n = 1), ``cfg.speed_reps`` unprofiled runs each in turns
+    (:func:`timed_runs`), then ours once under the profile; Open3D hybrid's frame-to-frame odometry on
+    the same frames; and, with ``cfg.startup``, the start-up of fresh processes with an empty cache,
+    a full one and none."""
     from .bench import bench_data, run_peer, with_hidden_exposure
     from .config import calibration_of, load_config
     from .datasets import open_sequence
@@ -128,25 +140,27 @@ def speed_benchmark(cfg: BenchConfig, quiet: bool = False) -> dict:
     for name, data in with_hidden_exposure(presets, cfg.hide_exposure).items():
         seq = open_sequence(data)
         startup = startup_runs(data, out / name / "startup") if cfg.startup else {}
-        ours = _warm_profile(seq, out / name / "ours", [], cfg.frames)
-        blind = _warm_profile(seq, out / name / "n1", ["tracker.blur_aware=false"], cfg.frames)
-        evaluation = load_config(None, [], calibration_of(seq.meta)).evaluation
-        peer = {} if cfg.no_peers else run_peer(seq, out / name / "open3d", "open3d", evaluation, cfg.peer_depth_max)
-        results[name] = {"ours": ours, "n1": blind, "open3d_s_per_frame": peer.get("seconds_per_frame"), "startup": startup}
+        timed = timed_runs(seq, out / name, {"ours": [], "n1": ["tracker.blur_aware=false"]}, cfg.frames, cfg.speed_reps)
+        config = load_config(None, [], calibration_of(seq.meta))
+        profile = profile_run(seq, out / name / "profiled", config, max_frames=cfg.frames)
+        peer = {} if cfg.no_peers else run_peer(seq, out / name / "open3d", "open3d", config.evaluation, cfg.peer_depth_max)
+        results[name] = {"frames": profile["frames"], "seconds": timed, "profile": profile,
+                         "open3d_s_per_frame": peer.get("seconds_per_frame"), "startup": startup}
     return results
 
 
 def format_speed_table(res: dict) -> str:
-    """The whole loop against Open3D, where its time goes, and start-up, one block per preset."""
+    """The whole loop against Open3D and n = 1, where its time goes, and start-up, one block per preset."""
     lines = []
     for preset, r in res.items():
-        o = r["ours"]
-        per_frame, peer = o["seconds"] / max(o["frames"], 1), r["open3d_s_per_frame"]
-        ratio = f"{per_frame / peer:.1f}x Open3D hybrid ({peer:.3f} s)" if peer else "no Open3D"
-        blind = r["n1"]["seconds"] / max(r["n1"]["frames"], 1)
-        lines += [f"[{preset}] whole loop {per_frame:.3f} s/frame over {o['frames']} frames = {ratio}; "
-                  f"{per_frame / blind:.2f}x ours blind to blur (n = 1, {blind:.3f} s)",
-                  "| part | seconds | share |", "|---|---|---|"]
+        o, frames = r["profile"], max(r["frames"], 1)
+        ours, blind = (statistics.median(r["seconds"][k]) / frames for k in ("ours", "n1"))
+        peer = r["open3d_s_per_frame"]
+        ratio = f"{ours / peer:.1f}x Open3D hybrid ({peer:.3f} s)" if peer else "no Open3D"
+        runs = ", ".join(f"{x:.2f}" for x in r["seconds"]["ours"]), ", ".join(f"{x:.2f}" for x in r["seconds"]["n1"])
+        lines += [f"[{preset}] whole loop {ours:.3f} s/frame over {r['frames']} frames = {ratio}; {ours / blind:.2f}x ours "
+                  f"blind to blur (n = 1, {blind:.3f} s); medians of unprofiled runs in turns (ours {runs[0]} s; n = 1 {runs[1]} s)",
+                  f"where the time goes, one run under cProfile ({o['seconds']:.2f} s):", "| part | seconds | share |", "|---|---|---|"]
         for part, sec in [*o["parts"].items(), ("rest", o["rest"])]:
             lines.append(f"| {part} | {sec:.2f} | {100 * sec / o['seconds']:.0f} % |")
         lines.append(f"| (compiling or loading programs, inside the parts) | {o['compile_seconds']:.2f} | |")

@@ -441,6 +441,8 @@ class BenchConfig(Settings):
     scenes: str = setting("", "odometry: also generate these scenes (cluttered, deep, distant; comma-separated) at scene_presets")
     scene_presets: str = setting("strong,extreme", "odometry: the blur presets of the extra scenes")
     peer_depth_max: float = setting(4.0, "depth range (m) of Open3D and OpenCV odometry (their own default; docs/benchmarks.md compares 20 m)", POSITIVE)
+    speed_reps: int = setting(3, "speed: unprofiled runs each of ours and of n = 1, in turns after a warm-up; ratios of their medians",
+                              AT_LEAST_1)
     startup: bool = setting(True, "speed: also time the start-up of fresh processes (empty cache, full cache, none)")
     readouts: str = setting("0,15,30", "rolling-shutter: readout times (ms) of the generated sequences, comma-separated")
     shake_deg: float = setting(0.5, "rolling-shutter: handheld-shake amplitude (deg) of a second, curved-path set of sequences "

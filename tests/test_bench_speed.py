@@ -5,7 +5,7 @@ import csv
 
 import pytest
 
-from mbavo_jax.bench_speed import PROFILE_PARTS, memory_growth, profile_run
+from mbavo_jax.bench_speed import PROFILE_PARTS, format_speed_table, memory_growth, profile_run, timed_runs
 from mbavo_jax.config import RunConfig, TrackerConfig
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.odometry.outputs import CSV_COLUMNS
@@ -43,3 +43,24 @@ def test_profile_splits_a_run_into_its_parts(tmp_path):
     assert sum(r["parts"].values()) + r["rest"] == pytest.approx(r["seconds"])
     assert 0 <= sum(r["parts"].values()) <= r["seconds"]
     assert (tmp_path / "run" / "trajectory.txt").is_file()
+
+
+def test_timed_runs_alternate_after_a_warm_up(tmp_path):
+    seq_dir = tmp_path / "seq"
+    assert run_cli("synth", "--out", str(seq_dir), "--preset", "none", "--frames", "3", "--width", "96", "--height", "72", "-q") == 0
+    seq = open_sequence(seq_dir)
+    runs = timed_runs(seq, tmp_path / "t", {"a": ["tracker.n=2"], "b": ["tracker.blur_aware=false"]}, frames=3, reps=2)
+    assert set(runs) == {"a", "b"} and all(len(v) == 2 and min(v) > 0 for v in runs.values())
+    # the warm-up (run0) and both timed runs of each variant wrote a whole trajectory
+    for name in runs:
+        for rep in range(3):
+            lines = (tmp_path / "t" / name / f"run{rep}" / "trajectory.txt").read_text().splitlines()
+            assert len([x for x in lines if not x.startswith("#")]) == 3
+
+
+def test_speed_table_takes_its_ratios_from_the_medians_of_the_unprofiled_runs():
+    profile = {"seconds": 9.0, "parts": dict.fromkeys(PROFILE_PARTS, 1.0), "rest": 3.0, "compile_seconds": 0.0}
+    res = {"p": {"frames": 10, "seconds": {"ours": [3.0, 2.0, 9.0], "n1": [1.0, 1.0, 5.0]}, "profile": profile,
+                 "open3d_s_per_frame": 0.1, "startup": {}}}
+    head = format_speed_table(res).splitlines()[0]
+    assert "whole loop 0.300 s/frame" in head and "3.0x Open3D" in head and "3.00x ours blind to blur (n = 1, 0.100 s)" in head

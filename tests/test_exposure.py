@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import json
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -22,6 +23,8 @@ from mbavo_jax.odometry.rgbd import RGBDPipeline
 from mbavo_jax.synthetic import PRESETS, SynthConfig, exposure_hidden_copy, generate_sequence
 
 SMALL_SET = ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]"]
+# The probe's 8 frames of these 16-frame paths change speed smoothly, by 1.29x at most (seed 2, strong): pairs from 1.2x.
+PROBE_SET = [*SMALL_SET, "odometry.exposure_pair_ratio=1.2"]
 
 
 def _generated(tmp_path_factory, preset: str):
@@ -84,6 +87,27 @@ def test_pairs_need_speeds_that_differ_enough():
     assert pick_pair(recent, raw(1.3, 120.0), ratio=1.3) is None
 
 
+def test_a_frames_speed_is_the_central_difference_about_its_exposure():
+    """Under acceleration the speed about a frame's exposure is the previous-to-next mid pose
+    difference (the exposure is centred on the mid pose), not the previous-to-own one, which lags
+    by half a frame: x(t) = v t + a t², depth 2 m, fx 100: 100 v / 2 px/s, where the backward
+    difference gives 100 (v - a dt) / 2."""
+    from mbavo_jax.config import TrackerConfig
+    from mbavo_jax.geometry import PinholeCamera
+    from mbavo_jax.odometry.exposure import _speed, with_keyframe, with_next
+
+    v, a, dt = 0.3, 3.0, 1 / 30
+    at = lambda t: Pose(Pose.identity().q, jnp.array([v * t + a * t * t, 0.0, 0.0], jnp.float32))
+    camera = PinholeCamera.create(100.0, 100.0, 39.5, 29.5, 80, 60)
+    image = np.random.default_rng(0).random((60, 80)).astype(np.float32)
+    frame = with_keyframe(RawFrame(1.0, image, np.full((60, 80), 2.0, np.float32), at(0.0), at(-dt), dt, 0.0), camera, TrackerConfig())
+    T_ref = frame.T_world_mid.inverse()
+    assert _speed(frame.keyframe, T_ref, frame) == pytest.approx(100 * (v - a * dt) / 2, rel=0.01)  # no next frame yet
+    central = with_next(frame, at(dt), dt, 0.0)
+    assert central.velocity()[2] == pytest.approx(2 * dt)
+    assert _speed(central.keyframe, T_ref, central) == pytest.approx(100 * v / 2, rel=0.01)
+
+
 def test_known_exposure_without_times_is_one_line_error(strong, tmp_path, mbavo):
     hidden = exposure_hidden_copy(strong[0], tmp_path / "hidden")
     r = mbavo("track", hidden, "--out", tmp_path / "run", "-q", "--set", "odometry.exposure=known")
@@ -124,7 +148,7 @@ def test_probe_starts_the_run_from_an_estimate_not_the_guess(strong, tmp_path):
     0 and does not pair those frames again."""
     path, cfg = strong
     seq = open_sequence(exposure_hidden_copy(path, tmp_path / "hidden"))
-    config = load_config(None, SMALL_SET)
+    config = load_config(None, PROBE_SET)
     start = RGBDPipeline(seq.camera, config).start_state(seq)
     true_fraction = cfg.exposure_ms / 1000 * cfg.fps
     assert start.exposure is not None and start.exposure.count >= 3 and start.tracked == 0
@@ -197,7 +221,7 @@ def test_sharp_frames_and_the_exposure_probe_are_tracked_with_one_pose(tmp_path_
     gives samples; in the run, frames whose predicted blur is under half a pixel (the estimate is
     short) are tracked with one pose, n = 1."""
     path, _ = _generated(tmp_path_factory, "none")
-    seq, config = open_sequence(exposure_hidden_copy(path, tmp_path / "hidden")), load_config(None, SMALL_SET)
+    seq, config = open_sequence(exposure_hidden_copy(path, tmp_path / "hidden")), load_config(None, PROBE_SET)
 
     def no_deblur(*args, **kwargs):
         raise AssertionError("the exposure probe deblurred a keyframe")
@@ -240,7 +264,7 @@ def test_pairs_are_tracked_without_the_prior_on_the_finest_levels(strong, tmp_pa
 
     monkeypatch.setattr(exposure, "track", recording)
     seq = open_sequence(exposure_hidden_copy(strong[0], tmp_path / "hidden"))
-    config = load_config(None, [*SMALL_SET, "odometry.exposure_pair_levels=1"])
+    config = load_config(None, [*PROBE_SET, "odometry.exposure_pair_levels=1"])
     start = RGBDPipeline(seq.camera, config).start_state(seq)
     assert start.exposure is not None and start.exposure.count >= 1
     assert seen and set(seen) == {(1, 0.0)}, seen

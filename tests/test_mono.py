@@ -210,7 +210,7 @@ def test_exposure_pairs_use_the_window_points_depth_at_the_tracked_pose():
     mono = MonoState(window=window, slots=(0, 1, 2), stamps=(0.0, 0.1, 0.2), candidates=(None,) * 4)
     state = RunState(mids=((0.2, Pose.identity()),), backend=mono)
     frame = Frame(3, 0.3, np.full((h, w), 0.5, np.float32), camera, depth=np.ones((h, w), np.float32))
-    recent, _ = pipeline.exposure_pairing(state, frame, Pose.identity(), 100.0, 0.1)
+    recent = pipeline.exposure_pairing(state, frame, Pose.identity(), 100.0, 0.1).recent
     depth = recent[-1].depth
     assert np.isfinite(depth).sum() == 3
     assert np.allclose(depth[[30, 60, 90], [40, 80, 120]], [2.0, 4.0, 1.0])

@@ -27,7 +27,7 @@ from ..geometry import ExposureTrajectory, PinholeCamera, Pose, readout_fraction
 from ..tracking import Keyframe, exposure_from_velocity, track
 from .stats import keyframe_stats
 
-__all__ = ["ExposureEstimate", "RawFrame", "adaptive_n", "blind", "exposure_mode", "prior_off", "pair_tracker", "pick_pair", "pair_sample", "with_keyframe"]
+__all__ = ["ExposureEstimate", "RawFrame", "adaptive_n", "blind", "exposure_mode", "prior_off", "pair_tracker", "pick_pair", "pair_sample", "with_keyframe", "with_next"]
 
 
 @functools.lru_cache(maxsize=16)
@@ -81,6 +81,20 @@ class RawFrame:
     dt: float
     speed: float
     keyframe: Keyframe | None = None  # the frame as a keyframe, made when it is first paired (``with_keyframe``)
+    T_world_next: Pose | None = None  # the next tracked frame's mid pose, ``dt_next`` s later (``with_next``)
+    dt_next: float = 0.0
+
+    def velocity(self) -> tuple[Pose, Pose, float]:
+        """(from, to, seconds) of the motion about this frame's exposure: previous to next mid pose
+        (a central difference) once the next is known, else previous to this one."""
+        if self.T_world_next is None:
+            return self.T_world_prev, self.T_world_mid, self.dt
+        return self.T_world_prev, self.T_world_next, self.dt + self.dt_next
+
+
+def with_next(frame: RawFrame, T_world_next: Pose, dt_next: float, speed: float) -> RawFrame:
+    """``frame`` once the next frame is tracked: its speed (px/s) about its own exposure, ``speed``."""
+    return dataclasses.replace(frame, T_world_next=T_world_next, dt_next=dt_next, speed=speed)
 
 
 def with_keyframe(frame: RawFrame, camera: PinholeCamera, tracker: TrackerConfig) -> RawFrame:
@@ -104,8 +118,9 @@ def pick_pair(recent: tuple[RawFrame, ...], current: RawFrame, ratio: float) -> 
 
 def _speed(kf: Keyframe, T_ref_world: Pose, frame: RawFrame) -> float:
     """The mean speed (px/s) of the keyframe's points in ``frame`` (poses relative to the keyframe)."""
-    mid, prev = T_ref_world.compose(frame.T_world_mid), T_ref_world.compose(frame.T_world_prev)
-    return keyframe_stats(kf, ExposureTrajectory(mid, mid), prev).motion_px / frame.dt
+    a, b, seconds = frame.velocity()
+    to = T_ref_world.compose(b)
+    return keyframe_stats(kf, ExposureTrajectory(to, to), T_ref_world.compose(a)).motion_px / seconds
 
 
 def _extra_blur(ref: RawFrame, kf: Keyframe, other: RawFrame, tracker: TrackerConfig, guess_s: float) -> float | None:
@@ -115,7 +130,8 @@ def _extra_blur(ref: RawFrame, kf: Keyframe, other: RawFrame, tracker: TrackerCo
     T_ref = ref.T_world_mid.inverse()
     mid = T_ref.compose(other.T_world_mid)
     rho = readout_fraction(tracker.readout_s, guess_s)
-    path = exposure_from_velocity(other.T_world_prev.inverse().compose(other.T_world_mid), other.dt, guess_s + tracker.readout_s)
+    a, b, seconds = other.velocity()
+    path = exposure_from_velocity(a.inverse().compose(b), seconds, guess_s + tracker.readout_s)
     res = track(kf, other.image, ExposureTrajectory(mid.compose(path.start), mid.compose(path.end)),
                 tracker, depth=other.depth, readout=rho)
     return keyframe_stats(kf, res.trajectory.middle_row_path(rho)).blur_px if res.status.ok else None

@@ -41,7 +41,7 @@ from ..mono.window import Window, add_keyframe, add_points, frame_affine, relati
 from ..tracking import Keyframe, Status, track
 from .inview import ViewStats, in_view_stats
 from .rgbd import RGBDPipeline
-from .state import Fit, FrameOutcome, KeyframeState, NewKeyframe, RunState
+from .state import Fit, FrameOutcome, KeyframeState, NewKeyframe, Pairing, RunState
 
 __all__ = ["MonoPipeline", "MonoState", "PointCloud"]
 
@@ -149,7 +149,7 @@ class MonoPipeline(RGBDPipeline):
     # ------------------------------------------------------------------------ initialisation
 
     def _waiting(self, state: RunState, frame, index: int, note: str) -> tuple[RunState, FrameOutcome]:
-        report = self.exposure_report(state, frame, None, 0.0)
+        report = self.exposure_report(state, frame, 0.0)
         return state, FrameOutcome(index, frame.timestamp, "initialising", exposure=report, note=note)
 
     def _initialise(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
@@ -246,7 +246,7 @@ class MonoPipeline(RGBDPipeline):
 
     # ------------------------------------------------------------------------------ tracking
 
-    def exposure_pairing(self, state: RunState, frame, T_w_mid: Pose, speed: float, dt: float):
+    def exposure_pairing(self, state: RunState, frame, T_w_mid: Pose, speed: float, dt: float) -> Pairing:
         """As the RGB-D pipeline's, but a frame joins the exposure estimate's pairs only once the
         window holds ``SAMPLING_KEYFRAMES`` keyframes: before, its depth (from the few points of the
         two-view start) is too coarse to measure blur with, and a wrong early sample pulls the estimate
@@ -256,7 +256,7 @@ class MonoPipeline(RGBDPipeline):
         length (hence the sample) is not skewed by the filled map's guesses between points."""
         mono = state.backend
         if mono is None or len(mono.slots) < SAMPLING_KEYFRAMES:
-            return state.recent, None
+            return Pairing(state.recent)
         frame = dataclasses.replace(frame, depth=self.window_depth(mono, T_w_mid))
         return super().exposure_pairing(state, frame, T_w_mid, speed, dt)
 
@@ -318,7 +318,7 @@ class MonoPipeline(RGBDPipeline):
                                   keyframe=None, pending=None, consecutive_drops=0, fits=())
             note = f"lost after {odo.reset_after_drops} drops: initialising again"
         status = (result.status if result is not None else Status.TOO_FEW_POINTS).name.lower()
-        report = self.exposure_report(state, frame, None, 0.0)
+        report = self.exposure_report(state, frame, 0.0)
         return state, FrameOutcome(index, frame.timestamp, status, result=result, exposure=report, note=note)
 
     # ------------------------------------------------------------------------------- back-end

@@ -23,7 +23,7 @@ __all__ = ["RunOutputs", "CSV_COLUMNS", "keyframe_image_path", "read_keyframe_im
 
 CSV_COLUMNS = ["index", "timestamp", "status", "rms", "n_finest", "blur_px", "hypothesis", "ms", "keyframe",
                "exposure", "exposure_ms", "exposure_fraction", "sample_s", "sample_weight", "sample_dt_s", "speed_px_s",
-               "jump_px", "note", "backend_ms", "rss_mb"]
+               "prev_speed_px_s", "jump_px", "note", "backend_ms", "rss_mb"]
 EXPOSURE_HEADER = "timestamp start:tx ty tz qx qy qz qw end:tx ty tz qx qy qz qw (camera-to-world)"
 SPLINE_HEADER = "timestamp control poses 0..3 (tx ty tz qx qy qz qw each) of the cubic exposure path (camera-to-world)"
 
@@ -46,12 +46,13 @@ def _vec(p: Pose) -> np.ndarray:
 def _exposure_cells(e: ExposureReport | None) -> list:
     """How the exposure is had, its value (ms, fraction of the frame interval) after this frame, and
     the sample this frame gave the estimate (exposure s, weight, frame interval s) and its point
-    speed kept for pairing; blank: none."""
+    speed since the previous tracked frame, and the previous frame's central speed it completes (both
+    kept for pairing); blank: none."""
     if e is None:
-        return [""] * 7
+        return [""] * 8
     sample = [repr(float(v)) for v in e.sample] if e.sample else ["", "", ""]  # exact, for --resume
     return [e.mode, f"{1000 * e.seconds:.4f}", "" if e.fraction is None else f"{e.fraction:.4f}", *sample,
-            "" if e.speed is None else repr(e.speed)]
+            "" if e.speed is None else repr(e.speed), "" if e.completed_speed is None else repr(e.completed_speed)]
 
 
 def _csv_row(o: FrameOutcome) -> list:

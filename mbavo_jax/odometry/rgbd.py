@@ -24,9 +24,9 @@ from ..image import quantize16
 from ..progress import bar
 from ..tracking import Keyframe, Status, TrackResult, constant_velocity_guess, exposure_from_velocity, predicted_blur_px, track
 from .exposure import (ExposureEstimate, RawFrame, adaptive_n, blind, exposure_mode, pair_sample, pick_pair, prior_off,
-                       with_keyframe)
+                       with_keyframe, with_next)
 from .stats import PointStats, keyframe_stats
-from .state import ExposureReport, Fit, FrameOutcome, KeyframeState, NewKeyframe, PendingDeblur, RunState, Triptych
+from .state import ExposureReport, Fit, FrameOutcome, KeyframeState, NewKeyframe, Pairing, PendingDeblur, RunState, Triptych
 
 __all__ = ["RGBDPipeline", "PointStats", "needs_keyframe", "keyframe_stats", "implausible"]
 
@@ -194,7 +194,7 @@ class RGBDPipeline:
         T_w = Pose.identity()
         state, new = self.keyframe_without_path(state, frame, T_w)
         state = state.replace(mids=((frame.timestamp, T_w),), tracked=state.tracked + 1)
-        report = self.exposure_report(state, frame, None, 0.0)
+        report = self.exposure_report(state, frame, 0.0)
         return state, FrameOutcome(index, frame.timestamp, "keyframe", T_w, T_w, T_w, new_keyframe=new, exposure=report)
 
     def predict(self, state: RunState, frame) -> tuple[ExposureTrajectory, bool]:
@@ -295,16 +295,19 @@ class RGBDPipeline:
         again = track(keyframe, frame.image, init, self.tracker_config(frame, True, state), depth=frame.depth, readout=readout)
         return state, (again if again.status.ok else result), ((kf.stamp, sharp),)
 
-    def exposure_report(self, state: RunState, frame, sample: tuple[float, float] | None, dt: float,
+    def exposure_report(self, state: RunState, frame, dt: float, pairing: Pairing | None = None,
                         speed: float | None = None) -> ExposureReport:
-        """This frame's exposure record; when estimated, ``sample`` (or None) is added to
-        ``state.exposure`` and the report carries the result and the frame's point ``speed``."""
+        """This frame's exposure record; when estimated, the ``pairing``'s sample (if any) is added to
+        ``state.exposure`` and the report carries the result, the frame's point ``speed`` and the
+        central speed it completed."""
         mode = self.exposure_mode(frame)
         if mode != "estimate":
             seconds = self.exposure_of(state, frame, dt)
             return ExposureReport(mode, seconds, seconds / dt if dt > 0 else None)
+        sample = None if pairing is None else pairing.sample
         est = self.estimate(state).add(sample, dt)
-        return ExposureReport(mode, est.seconds(dt), est.fraction(), None if sample is None else (*sample, dt), est, speed)
+        return ExposureReport(mode, est.seconds(dt), est.fraction(), None if sample is None else (*sample, dt), est, speed,
+                              None if pairing is None else pairing.completed_speed)
 
     def sample_due(self, state: RunState, stamp: float) -> bool:
         """Whether the frame at ``stamp`` is paired for an exposure sample: not when the exposure probe
@@ -315,28 +318,43 @@ class RGBDPipeline:
             return False
         return state.tracked % odo.exposure_thin == 0 or not self.estimate(state).settled(SETTLED_SAMPLES, odo.exposure_settled)
 
-    def exposure_pairing(self, state: RunState, frame, T_w_mid: Pose, speed: float, dt: float):
-        """(recent raw frames with this one, a sample from the pair of this frame and a recent one
-        whose speeds differ most, or None), for an estimated exposure. Before the first sample (n
-        from the guess's blur) and with a short estimate, the pair is tracked with adaptive n; with a
-        short one, chosen from an exposure of at least ``odometry.exposure_guess`` until the estimate
-        has settled (``odometry.exposure_settled``), from the estimate after."""
+    def exposure_pairing(self, state: RunState, frame, T_w_mid: Pose, speed: float, dt: float) -> Pairing:
+        """The raw frames kept for an estimated exposure, with this one (speed since the previous
+        tracked frame), and a sample. This frame completes the previous raw frame's central speed
+        (previous to next mid pose), which pairing compares: the previous frame is paired with the
+        recent one whose central speed differs most. Before the first sample (n from the guess's
+        blur) and with a short estimate, the pair is tracked with adaptive n; with a short one,
+        chosen from an exposure of at least ``odometry.exposure_guess`` until the estimate has
+        settled (``odometry.exposure_settled``), from the estimate after."""
         odo = self.config.odometry
         current = RawFrame(frame.timestamp, frame.image, frame.depth, T_w_mid, state.mids[-1][1], dt, speed)
-        recent = (*state.recent, current)[-odo.exposure_pair_frames:]
-        pair, sample = pick_pair(state.recent, current, odo.exposure_pair_ratio) if self.sample_due(state, frame.timestamp) else None, None
-        if pair is not None:
-            pair = tuple(with_keyframe(f, self.camera, self.config.tracker) for f in pair)
-            made = {f.stamp: f for f in pair}
-            recent = tuple(made.get(f.stamp, f) for f in recent)
-            est, tracker = self.estimate(state), self.config.tracker
-            guess = est.seconds(pair[1].dt)
-            if not est.count or self.short_exposure(state, frame):
-                tracker = adaptive_n(tracker)
-                if est.count and not est.settled(SETTLED_SAMPLES, odo.exposure_settled):
-                    guess = max(guess, odo.exposure_guess * pair[1].dt)
-            sample = pair_sample(*pair, self.camera, tracker, guess, odo.exposure_pair_ratio, odo.exposure_pair_levels)
-        return recent, sample
+        last = state.recent[-1] if state.recent else None
+        if last is None or last.stamp != state.mids[-1][0] or last.T_world_next is not None:
+            return Pairing((*state.recent, current)[-odo.exposure_pair_frames:])
+        last = with_next(last, T_w_mid, dt, self.central_speed(state, last, T_w_mid, dt))
+        recent = (*state.recent[:-1], last, current)[-odo.exposure_pair_frames:]
+        central = tuple(f for f in state.recent[:-1] if f.T_world_next is not None)
+        pair = pick_pair(central, last, odo.exposure_pair_ratio) if self.sample_due(state, last.stamp) else None
+        if pair is None:
+            return Pairing(recent, None, last.speed)
+        pair = tuple(with_keyframe(f, self.camera, self.config.tracker) for f in pair)
+        made = {f.stamp: f for f in pair}
+        recent = tuple(made.get(f.stamp, f) for f in recent)
+        est, tracker = self.estimate(state), self.config.tracker
+        guess = est.seconds(pair[1].dt)
+        if not est.count or self.short_exposure(state, frame):
+            tracker = adaptive_n(tracker)
+            if est.count and not est.settled(SETTLED_SAMPLES, odo.exposure_settled):
+                guess = max(guess, odo.exposure_guess * pair[1].dt)
+        sample = pair_sample(*pair, self.camera, tracker, guess, odo.exposure_pair_ratio, odo.exposure_pair_levels)
+        return Pairing(recent, sample, last.speed)
+
+    def central_speed(self, state: RunState, last: RawFrame, T_w_next: Pose, dt: float) -> float:
+        """The speed (px/s, on the current keyframe's points) about ``last``'s exposure: from the pose
+        before it to ``T_w_next``, ``dt`` s after it (a central difference)."""
+        T_kf = state.keyframe.T_world_kf.inverse()
+        to = T_kf.compose(T_w_next)
+        return keyframe_stats(state.keyframe.keyframe, ExposureTrajectory(to, to), T_kf.compose(last.T_world_prev)).motion_px / (last.dt + dt)
 
     def _tracked(self, state: RunState, frame, index: int, result: TrackResult, informed: bool, fit: Fit,
                  stats: PointStats) -> tuple[RunState, FrameOutcome]:
@@ -347,10 +365,10 @@ class RGBDPipeline:
         dt = frame.timestamp - state.mids[-1][0]
         paced = informed or state.dropped == 0  # else the interval since the last tracked frame spans drops
         speed = stats.motion_px / dt if paced and dt > 0 and self.exposure_mode(frame) == "estimate" else None
-        recent, sample = self.exposure_pairing(state, frame, T_w_mid, speed, dt) if speed is not None else (state.recent, None)
-        report = self.exposure_report(state, frame, sample, dt, speed)
+        pairing = self.exposure_pairing(state, frame, T_w_mid, speed, dt) if speed is not None else Pairing(state.recent)
+        report = self.exposure_report(state, frame, dt, pairing, speed)
         state = state.replace(mids=(*state.mids, (frame.timestamp, T_w_mid))[-2:], tracked=state.tracked + 1, consecutive_drops=0,
-                              exposure=report.estimate or state.exposure, recent=recent,
+                              exposure=report.estimate or state.exposure, recent=pairing.recent,
                               fits=(*state.fits, fit)[-self.config.odometry.reject_window:])
         new = None
         if self.wants_keyframe(stats) and frame.depth is not None:
@@ -386,5 +404,5 @@ class RGBDPipeline:
             state, new = self.keyframe_without_path(state, frame, state.mids[-1][1])
             state = state.replace(consecutive_drops=0, fits=())  # a new start: earlier fits do not compare
         status = (result.status if result is not None else Status.TOO_FEW_POINTS).name.lower()
-        report = self.exposure_report(state, frame, None, 0.0)
+        report = self.exposure_report(state, frame, 0.0)
         return state, FrameOutcome(index, frame.timestamp, status, new_keyframe=new, result=result, exposure=report)

@@ -25,7 +25,7 @@ from ..progress import bar
 from ..runtime import compile_counts, enable_compilation_cache
 from ..tracking import Keyframe, Status
 from ..tracking.memory import check_memory
-from .exposure import RawFrame
+from .exposure import RawFrame, with_next
 from .folder import check_resume, clear_run, reconcile, record_run
 from .outputs import RunOutputs, keyframe_image_path, read_keyframe_image
 from .mono import MonoPipeline
@@ -49,15 +49,22 @@ def _restore_exposure(state: RunState, rows: list[dict], seq, poses: dict, pipel
     if any(r.get("exposure") == "estimate" for r in rows):
         state = state.replace(exposure=dataclasses.replace(est, samples=(*est.samples, *samples)[-est.window:]))
     stamps = np.array(sorted(poses))
-    keep = pipeline.config.odometry.exposure_pair_frames
+    raw = [r for r in rows if r.get("speed_px_s")]
+    completed = {}  # a raw frame's row -> the next raw frame's row, which completed its central speed
+    for before, after in zip(raw, raw[1:]):
+        if after.get("prev_speed_px_s"):
+            completed[id(before)] = after
     recent = []
-    for r in [r for r in rows if r.get("speed_px_s")][-keep:]:  # only the frames the pairing keeps are loaded
+    for r in raw[-pipeline.config.odometry.exposure_pair_frames:]:  # only the frames the pairing keeps are loaded
         k = int(np.argmin(np.abs(stamps - float(r["timestamp"]))))
         if k == 0:
             continue
         frame = seq[int(r["index"])]
-        recent.append(RawFrame(frame.timestamp, frame.image, frame.depth, poses[stamps[k]], poses[stamps[k - 1]],
-                               frame.timestamp - stamps[k - 1], float(r["speed_px_s"])))
+        kept = RawFrame(frame.timestamp, frame.image, frame.depth, poses[stamps[k]], poses[stamps[k - 1]],
+                        frame.timestamp - stamps[k - 1], float(r["speed_px_s"]))
+        if id(r) in completed and k + 1 < len(stamps):
+            kept = with_next(kept, poses[stamps[k + 1]], stamps[k + 1] - frame.timestamp, float(completed[id(r)]["prev_speed_px_s"]))
+        recent.append(kept)
     return state.replace(recent=tuple(recent))
 
 

@@ -17,7 +17,7 @@ from ..geometry import ExposurePath, Pose
 from ..tracking import Keyframe, TrackResult
 from .exposure import ExposureEstimate, RawFrame
 
-__all__ = ["Fit", "KeyframeState", "PendingDeblur", "RunState", "NewKeyframe", "Triptych", "ExposureReport", "FrameOutcome", "Pipeline"]
+__all__ = ["Fit", "KeyframeState", "PendingDeblur", "RunState", "NewKeyframe", "Triptych", "ExposureReport", "FrameOutcome", "Pairing", "Pipeline"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,6 +94,17 @@ class NewKeyframe:
 
 
 @dataclasses.dataclass(frozen=True)
+class Pairing:
+    """What a tracked frame gave the estimated exposure's pairing: the raw frames kept, a sample
+    (exposure s, weight) or None, and the previous raw frame's central speed (px/s), which this
+    frame completes (None when it does not follow that frame directly)."""
+
+    recent: tuple[RawFrame, ...]
+    sample: tuple[float, float] | None = None
+    completed_speed: float | None = None
+
+
+@dataclasses.dataclass(frozen=True)
 class ExposureReport:
     """A frame's exposure time: how it is known (``known``, ``estimate``, ``none``), its value
     after this frame (seconds, and as a fraction of the frame interval when that is known), and
@@ -104,7 +115,8 @@ class ExposureReport:
     fraction: float | None = None
     sample: tuple[float, float, float] | None = None
     estimate: ExposureEstimate | None = None  # the running estimate after this frame (estimated mode)
-    speed: float | None = None  # the frame's point speed (px/s) that pairing compares (estimated mode)
+    speed: float | None = None  # the frame's point speed (px/s) since the previous tracked frame (estimated mode)
+    completed_speed: float | None = None  # the previous raw frame's central speed (px/s), completed by this frame
 
 
 @dataclasses.dataclass(frozen=True)

@@ -106,17 +106,15 @@ def memory_growth(run_dir, early: int = 100) -> dict:
             "ratio": b / a}
 
 
-def timed_runs(seq, out, variants: dict[str, list[str]], frames: int, reps: int) -> dict[str, list[float]]:
-    """Wall seconds of ``reps`` unprofiled ``run_odometry`` calls of each variant (its ``--set``
-    overrides) on ``seq``'s first ``frames`` frames, the variants in turns, after one warm-up run of
-    each in this process (tracing and compilation are the start-up runs' to measure)."""
-    from .config import calibration_of, load_config
+def timed_runs(seq, out, variants: dict[str, RunConfig], frames: int, reps: int) -> dict[str, list[float]]:
+    """Wall seconds of ``reps`` unprofiled ``run_odometry`` calls of each variant (its run settings)
+    on ``seq``'s first ``frames`` frames, the variants in turns, after one warm-up run of each in this
+    process (tracing and compilation are the start-up runs' to measure)."""
     from .odometry import run_odometry
 
-    configs = {name: load_config(None, o, calibration_of(seq.meta)) for name, o in variants.items()}
     seconds = {name: [] for name in variants}
     for rep in range(reps + 1):
-        for name, config in configs.items():
+        for name, config in variants.items():
             t0 = time.perf_counter()
             run_odometry(seq, pathlib.Path(out) / name / f"run{rep}", config, max_frames=frames, progress=False)
             if rep:
@@ -140,8 +138,8 @@ def speed_benchmark(cfg: BenchConfig, quiet: bool = False) -> dict:
     for name, data in with_hidden_exposure(presets, cfg.hide_exposure).items():
         seq = open_sequence(data)
         startup = startup_runs(data, out / name / "startup") if cfg.startup else {}
-        timed = timed_runs(seq, out / name, {"ours": [], "n1": ["tracker.blur_aware=false"]}, cfg.frames, cfg.speed_reps)
         config = load_config(None, [], calibration_of(seq.meta))
+        timed = timed_runs(seq, out / name, {"ours": config, "n1": config.replace(tracker=dict(blur_aware=False))}, cfg.frames, cfg.speed_reps)
         profile = profile_run(seq, out / name / "profiled", config, max_frames=cfg.frames)
         peer = {} if cfg.no_peers else run_peer(seq, out / name / "open3d", "open3d", config.evaluation, cfg.peer_depth_max)
         results[name] = {"frames": profile["frames"], "seconds": timed, "profile": profile,
@@ -157,9 +155,9 @@ def format_speed_table(res: dict) -> str:
         ours, blind = (statistics.median(r["seconds"][k]) / frames for k in ("ours", "n1"))
         peer = r["open3d_s_per_frame"]
         ratio = f"{ours / peer:.1f}x Open3D hybrid ({peer:.3f} s)" if peer else "no Open3D"
-        runs = ", ".join(f"{x:.2f}" for x in r["seconds"]["ours"]), ", ".join(f"{x:.2f}" for x in r["seconds"]["n1"])
+        runs = {k: ", ".join(f"{x:.2f}" for x in v) for k, v in r["seconds"].items()}
         lines += [f"[{preset}] whole loop {ours:.3f} s/frame over {r['frames']} frames = {ratio}; {ours / blind:.2f}x ours "
-                  f"blind to blur (n = 1, {blind:.3f} s); medians of unprofiled runs in turns (ours {runs[0]} s; n = 1 {runs[1]} s)",
+                  f"blind to blur (n = 1, {blind:.3f} s); medians of unprofiled runs in turns (ours {runs['ours']} s; n = 1 {runs['n1']} s)",
                   f"where the time goes, one run under cProfile ({o['seconds']:.2f} s):", "| part | seconds | share |", "|---|---|---|"]
         for part, sec in [*o["parts"].items(), ("rest", o["rest"])]:
             lines.append(f"| {part} | {sec:.2f} | {100 * sec / o['seconds']:.0f} % |")

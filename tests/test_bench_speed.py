@@ -49,7 +49,8 @@ def test_timed_runs_alternate_after_a_warm_up(tmp_path):
     seq_dir = tmp_path / "seq"
     assert run_cli("synth", "--out", str(seq_dir), "--preset", "none", "--frames", "3", "--width", "96", "--height", "72", "-q") == 0
     seq = open_sequence(seq_dir)
-    runs = timed_runs(seq, tmp_path / "t", {"a": ["tracker.n=2"], "b": ["tracker.blur_aware=false"]}, frames=3, reps=2)
+    config = RunConfig()
+    runs = timed_runs(seq, tmp_path / "t", {"a": config.replace(tracker=dict(n=2)), "b": config.replace(tracker=dict(blur_aware=False))}, frames=3, reps=2)
     assert set(runs) == {"a", "b"} and all(len(v) == 2 and min(v) > 0 for v in runs.values())
     # the warm-up (run0) and both timed runs of each variant wrote a whole trajectory
     for name in runs:

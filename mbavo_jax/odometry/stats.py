@@ -47,7 +47,7 @@ def point_view(cam, pixels, depths, valid, traj: ExposureTrajectory, prev: Pose,
     over the ``valid`` points, or with ``in_view`` over those with a usable depth that lie in front of
     the camera and inside the image at the mid-exposure pose (traceable)."""
     usable = valid & jnp.isfinite(depths) & (depths > 0) if in_view else valid
-    X = jax.vmap(cam.backproject)(pixels, jnp.where(usable, depths, 1.0) if in_view else depths)
+    X = jax.vmap(cam.backproject)(pixels, jnp.where(usable, depths, 1.0))
     T_mid_kf = traj.middle().inverse()
     Xc = jax.vmap(T_mid_kf.apply)(X)
     front = Xc[:, 2] > 1e-6

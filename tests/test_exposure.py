@@ -94,7 +94,7 @@ def test_a_frames_speed_is_the_central_difference_about_its_exposure():
     difference gives 100 (v - a dt) / 2."""
     from mbavo_jax.config import TrackerConfig
     from mbavo_jax.geometry import PinholeCamera
-    from mbavo_jax.odometry.exposure import _speed, with_keyframe, with_next
+    from mbavo_jax.odometry.exposure import point_speed, with_keyframe, with_next
 
     v, a, dt = 0.3, 3.0, 1 / 30
     at = lambda t: Pose(Pose.identity().q, jnp.array([v * t + a * t * t, 0.0, 0.0], jnp.float32))
@@ -102,10 +102,10 @@ def test_a_frames_speed_is_the_central_difference_about_its_exposure():
     image = np.random.default_rng(0).random((60, 80)).astype(np.float32)
     frame = with_keyframe(RawFrame(1.0, image, np.full((60, 80), 2.0, np.float32), at(0.0), at(-dt), dt, 0.0), camera, TrackerConfig())
     T_ref = frame.T_world_mid.inverse()
-    assert _speed(frame.keyframe, T_ref, frame) == pytest.approx(100 * (v - a * dt) / 2, rel=0.01)  # no next frame yet
+    assert point_speed(frame.keyframe, T_ref, frame) == pytest.approx(100 * (v - a * dt) / 2, rel=0.01)  # no next frame yet
     central = with_next(frame, at(dt), dt, 0.0)
     assert central.velocity()[2] == pytest.approx(2 * dt)
-    assert _speed(central.keyframe, T_ref, central) == pytest.approx(100 * v / 2, rel=0.01)
+    assert point_speed(central.keyframe, T_ref, central) == pytest.approx(100 * v / 2, rel=0.01)
 
 
 def test_known_exposure_without_times_is_one_line_error(strong, tmp_path, mbavo):

@@ -27,7 +27,7 @@ from ..geometry import ExposureTrajectory, PinholeCamera, Pose, readout_fraction
 from ..tracking import Keyframe, exposure_from_velocity, track
 from .stats import keyframe_stats
 
-__all__ = ["ExposureEstimate", "RawFrame", "adaptive_n", "blind", "exposure_mode", "prior_off", "pair_tracker", "pick_pair", "pair_sample", "with_keyframe", "with_next"]
+__all__ = ["ExposureEstimate", "RawFrame", "adaptive_n", "blind", "exposure_mode", "prior_off", "pair_tracker", "pick_pair", "pair_sample", "point_speed", "with_keyframe", "with_next"]
 
 
 @functools.lru_cache(maxsize=16)
@@ -116,8 +116,9 @@ def pick_pair(recent: tuple[RawFrame, ...], current: RawFrame, ratio: float) -> 
     return best
 
 
-def _speed(kf: Keyframe, T_ref_world: Pose, frame: RawFrame) -> float:
-    """The mean speed (px/s) of the keyframe's points in ``frame`` (poses relative to the keyframe)."""
+def point_speed(kf: Keyframe, T_ref_world: Pose, frame: RawFrame) -> float:
+    """The mean speed (px/s) of the keyframe's points over ``frame``'s motion (:meth:`RawFrame.velocity`;
+    ``T_ref_world``: world to the keyframe)."""
     a, b, seconds = frame.velocity()
     to = T_ref_world.compose(b)
     return keyframe_stats(kf, ExposureTrajectory(to, to), T_ref_world.compose(a)).motion_px / seconds
@@ -148,7 +149,7 @@ def pair_sample(slow: RawFrame, fast: RawFrame, camera: PinholeCamera, tracker: 
     slow, fast = with_keyframe(slow, camera, tracker), with_keyframe(fast, camera, tracker)
     tracker = pair_tracker(tracker, levels or tracker.levels)
     kf = slow.keyframe
-    s_slow, s_fast = _speed(kf, slow.T_world_mid.inverse(), slow), _speed(kf, slow.T_world_mid.inverse(), fast)
+    s_slow, s_fast = point_speed(kf, slow.T_world_mid.inverse(), slow), point_speed(kf, slow.T_world_mid.inverse(), fast)
     if not (np.isfinite(s_slow) and np.isfinite(s_fast)) or s_fast < ratio * max(s_slow, 1e-9):
         return None
     extra = _extra_blur(slow, kf, fast, tracker, guess_s)

@@ -23,8 +23,8 @@ from ..geometry import ExposurePath, ExposureTrajectory, PinholeCamera, Pose, re
 from ..image import quantize16
 from ..progress import bar
 from ..tracking import Keyframe, Status, TrackResult, constant_velocity_guess, exposure_from_velocity, predicted_blur_px, track
-from .exposure import (ExposureEstimate, RawFrame, adaptive_n, blind, exposure_mode, pair_sample, pick_pair, prior_off,
-                       with_keyframe, with_next)
+from .exposure import (ExposureEstimate, RawFrame, adaptive_n, blind, exposure_mode, pair_sample, pick_pair, point_speed,
+                       prior_off, with_keyframe, with_next)
 from .stats import PointStats, keyframe_stats
 from .state import ExposureReport, Fit, FrameOutcome, KeyframeState, NewKeyframe, Pairing, PendingDeblur, RunState, Triptych
 
@@ -329,9 +329,10 @@ class RGBDPipeline:
         odo = self.config.odometry
         current = RawFrame(frame.timestamp, frame.image, frame.depth, T_w_mid, state.mids[-1][1], dt, speed)
         last = state.recent[-1] if state.recent else None
-        if last is None or last.stamp != state.mids[-1][0] or last.T_world_next is not None:
+        if last is None or last.stamp != state.mids[-1][0]:
             return Pairing((*state.recent, current)[-odo.exposure_pair_frames:])
-        last = with_next(last, T_w_mid, dt, self.central_speed(state, last, T_w_mid, dt))
+        last = with_next(last, T_w_mid, dt, last.speed)
+        last = dataclasses.replace(last, speed=point_speed(state.keyframe.keyframe, state.keyframe.T_world_kf.inverse(), last))
         recent = (*state.recent[:-1], last, current)[-odo.exposure_pair_frames:]
         central = tuple(f for f in state.recent[:-1] if f.T_world_next is not None)
         pair = pick_pair(central, last, odo.exposure_pair_ratio) if self.sample_due(state, last.stamp) else None
@@ -348,13 +349,6 @@ class RGBDPipeline:
                 guess = max(guess, odo.exposure_guess * pair[1].dt)
         sample = pair_sample(*pair, self.camera, tracker, guess, odo.exposure_pair_ratio, odo.exposure_pair_levels)
         return Pairing(recent, sample, last.speed)
-
-    def central_speed(self, state: RunState, last: RawFrame, T_w_next: Pose, dt: float) -> float:
-        """The speed (px/s, on the current keyframe's points) about ``last``'s exposure: from the pose
-        before it to ``T_w_next``, ``dt`` s after it (a central difference)."""
-        T_kf = state.keyframe.T_world_kf.inverse()
-        to = T_kf.compose(T_w_next)
-        return keyframe_stats(state.keyframe.keyframe, ExposureTrajectory(to, to), T_kf.compose(last.T_world_prev)).motion_px / (last.dt + dt)
 
     def _tracked(self, state: RunState, frame, index: int, result: TrackResult, informed: bool, fit: Fit,
                  stats: PointStats) -> tuple[RunState, FrameOutcome]:

@@ -50,20 +50,17 @@ def _restore_exposure(state: RunState, rows: list[dict], seq, poses: dict, pipel
         state = state.replace(exposure=dataclasses.replace(est, samples=(*est.samples, *samples)[-est.window:]))
     stamps = np.array(sorted(poses))
     raw = [r for r in rows if r.get("speed_px_s")]
-    completed = {}  # a raw frame's row -> the next raw frame's row, which completed its central speed
-    for before, after in zip(raw, raw[1:]):
-        if after.get("prev_speed_px_s"):
-            completed[id(before)] = after
     recent = []
-    for r in raw[-pipeline.config.odometry.exposure_pair_frames:]:  # only the frames the pairing keeps are loaded
+    for i in range(max(len(raw) - pipeline.config.odometry.exposure_pair_frames, 0), len(raw)):  # the frames pairing keeps
+        r, after = raw[i], raw[i + 1] if i + 1 < len(raw) else {}
         k = int(np.argmin(np.abs(stamps - float(r["timestamp"]))))
         if k == 0:
             continue
         frame = seq[int(r["index"])]
         kept = RawFrame(frame.timestamp, frame.image, frame.depth, poses[stamps[k]], poses[stamps[k - 1]],
                         frame.timestamp - stamps[k - 1], float(r["speed_px_s"]))
-        if id(r) in completed and k + 1 < len(stamps):
-            kept = with_next(kept, poses[stamps[k + 1]], stamps[k + 1] - frame.timestamp, float(completed[id(r)]["prev_speed_px_s"]))
+        if after.get("prev_speed_px_s") and k + 1 < len(stamps):  # the next raw frame completed its central speed
+            kept = with_next(kept, poses[stamps[k + 1]], stamps[k + 1] - frame.timestamp, float(after["prev_speed_px_s"]))
         recent.append(kept)
     return state.replace(recent=tuple(recent))
 

@@ -23,7 +23,7 @@ from mbavo_jax.odometry.rgbd import RGBDPipeline
 from mbavo_jax.synthetic import PRESETS, SynthConfig, exposure_hidden_copy, generate_sequence
 
 SMALL_SET = ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]"]
-# The probe's 8 frames of these 16-frame paths change speed smoothly, by 1.29x at most (seed 2, strong): pairs from 1.2x.
+# These 16-frame paths change speed smoothly (by 1.29x at most over their first 8 frames, seed 2, strong): the probe pairs from 1.2x.
 PROBE_SET = [*SMALL_SET, "odometry.exposure_pair_ratio=1.2"]
 
 

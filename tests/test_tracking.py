@@ -283,6 +283,26 @@ def test_depth_residuals_drop_occluded_points(strong):
 
 
 @pytest.mark.slow
+def test_depth_term_gains_nothing_by_pushing_points_out(strong):
+    """The depth term's cost inside the solver never falls as the mid pose moves away from the
+    truth: a residual beyond ``outlier`` σ, or a sample that turns invalid, costs as much as one at
+    the cut (a cut to zero let the solver lower the cost by pushing every point past it)."""
+    from mbavo_jax.tracking.geometric import select_depth_points
+    from mbavo_jax.tracking.level import DepthTerm, depth_residuals_block
+
+    kf, _, _, gt = case(strong, 2, SMALL)
+    dp = select_depth_points(kf.depth, 8)
+    f32 = lambda v: jnp.asarray(v, jnp.float32)
+    term = DepthTerm(f32(np.nan_to_num(strong[3].depth, nan=0.0)), f32(dp.pixels), f32(dp.depths), jnp.asarray(dp.valid),
+                     f32(0.03), f32(3.0), f32(20.0), f32(0.02), f32([0.0005, 0.0]))
+    mid = gt.middle()
+    moved = [Pose(mid.q, mid.t + jnp.array([0.0, 0.0, dz])) for dz in np.linspace(0.0, 0.06, 13)]
+    cost = [float(jnp.sum(depth_residuals_block(ExposureTrajectory(p, p), kf.cameras[0], term) ** 2)) for p in moved]
+    assert cost[-1] > 10 * cost[0], cost
+    assert all(b >= a * (1 - 1e-5) for a, b in zip(cost, cost[1:])), cost
+
+
+@pytest.mark.slow
 def test_stiff_depth_term_with_an_occluder_still_lands(strong):
     """Exact depth weighted 100x the maximum-likelihood balance and an object in front of the
     scene: the mid pose must stay as good as the images-only estimate. Needs both guards: occluded

@@ -173,8 +173,7 @@ class TrackerConfig(Settings):
     depth_weight: float = setting(0.0, "RGB-D: weight of the frame's depth map, intensity units per sigma (0 = images only)", NONNEG)
     depth_sigma: tuple[float, float] = setting((0.0012, 0.0019), "depth noise sigma(z) = a + b (z - 0.4)^2 m (Kinect v1; camera.yaml's wins)", NONNEG)
     depth_huber: float = setting(3.0, "Huber threshold of the depth term, in sigma", POSITIVE)
-    depth_outlier: float = setting(20.0, "depth residuals beyond this many sigma (occlusions), and points whose depth sample is "
-                                   "invalid, cost as much as one at this cut: they stop pulling the pose", POSITIVE)
+    depth_outlier: float = setting(20.0, "depth residuals beyond this many sigma (occlusions) cost as much as one at it: they stop pulling the pose", POSITIVE)
     depth_levels: int = setting(3, "the depth term is used on this many finest levels (2 for weights >= 0.1)", AT_LEAST_1)
     depth_stride: int = setting(8, "grid spacing of the depth term's keyframe points (full-resolution pixels)", AT_LEAST_1)
     depth_edge: float = setting(0.02, "depth samples whose neighbours differ by more than this fraction are edges: dropped", POSITIVE)

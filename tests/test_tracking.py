@@ -285,8 +285,8 @@ def test_depth_residuals_drop_occluded_points(strong):
 @pytest.mark.slow
 def test_depth_term_gains_nothing_by_pushing_points_out(strong):
     """The depth term's cost inside the solver never falls as the mid pose moves away from the
-    truth: a residual beyond ``outlier`` σ, or a sample that turns invalid, costs as much as one at
-    the cut (a cut to zero let the solver lower the cost by pushing every point past it)."""
+    truth: a residual beyond ``outlier`` σ costs as much as one at the cut (a cut to zero let the
+    solver lower the cost by pushing every point past it)."""
     from mbavo_jax.tracking.geometric import select_depth_points
     from mbavo_jax.tracking.level import DepthTerm, depth_residuals_block
 

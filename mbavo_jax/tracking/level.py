@@ -209,11 +209,11 @@ def photometric_residuals(y, problem: LevelProblem, huber) -> Float[Array, " R"]
 
 def depth_residuals_block(traj: ExposurePath, camera: PinholeCamera, term: DepthTerm) -> Float[Array, " M"]:
     """The depth term at the path's middle pose, weighted and square-rooted Huber, truncated: a
-    residual beyond ``outlier`` σ, or a point whose depth sample is invalid (an edge, outside the
-    image), costs as much as one at ``outlier`` σ, so no step gains by pushing points out."""
+    residual beyond ``outlier`` σ costs as much as one at ``outlier`` σ (it stops pulling, and no
+    step gains by pushing it out); a point without a valid depth sample costs nothing."""
     r, ok = depth_residuals(traj.middle(), camera, term.cur_depth, term.pixels, term.depths, term.valid, term.edge,
                             (term.sigma[0], term.sigma[1]))
-    r = jnp.where(ok, jnp.clip(r, -term.outlier, term.outlier), jnp.where(term.valid, term.outlier, 0.0))
+    r = jnp.where(ok, jnp.clip(r, -term.outlier, term.outlier), 0.0)
     return term.weight * robust(r, term.huber)
 
 

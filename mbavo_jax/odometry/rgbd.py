@@ -338,9 +338,8 @@ class RGBDPipeline:
         pair = pick_pair(central, last, odo.exposure_pair_ratio) if self.sample_due(state, last.stamp) else None
         if pair is None:
             return Pairing(recent, None, last.speed)
-        pair = tuple(with_keyframe(f, self.camera, self.config.tracker) for f in pair)
-        made = {f.stamp: f for f in pair}
-        recent = tuple(made.get(f.stamp, f) for f in recent)
+        pair = (with_keyframe(pair[0], self.camera, self.config.tracker), pair[1])  # the slow frame's, kept for its next pairs
+        recent = tuple(pair[0] if f.stamp == pair[0].stamp else f for f in recent)
         est, tracker = self.estimate(state), self.config.tracker
         guess = est.seconds(pair[1].dt)
         if not est.count or self.short_exposure(state, frame):

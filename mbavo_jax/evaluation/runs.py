@@ -19,12 +19,16 @@ RUN_PLOTS = ("trajectory.png", "ape_over_time.png")  # what ``evaluate_run(..., 
 def evaluate_run(run, groundtruth, frame_stamps=None, config: EvalConfig = EvalConfig(), plots: bool = False) -> dict:
     """ATE of ``run/trajectory.txt`` against ``groundtruth`` (stamps, poses) after ``config.align``:
     ``ate_rmse_m``, ``ate_median_m`` and, given the sequence's ``frame_stamps``, ``frame_drop_rate``.
-    Empty without ground truth or trajectory, or with fewer than 3 matched poses (a lost run).
+    Empty without ground truth or trajectory, or with fewer than 3 matched poses (a lost run, or a
+    monocular one that never initialised).
     ``plots``: also write ``trajectory.png`` and ``ape_over_time.png`` into the run folder."""
     run = pathlib.Path(run)
     if groundtruth is None or not (run / "trajectory.txt").is_file():
         return {}
-    t_est, p_est = read_tum_trajectory(run / "trajectory.txt")
+    try:
+        t_est, p_est = read_tum_trajectory(run / "trajectory.txt")
+    except MbavoError:  # no pose at all (a monocular run that never initialised)
+        return {}
     t_gt, p_gt = groundtruth
     if len(t_est) < 3:
         return {}

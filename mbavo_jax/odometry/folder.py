@@ -4,28 +4,36 @@
 A frame is committed when its frames.csv row is on disk: ``RunOutputs.write`` writes the keyframe
 image first, then the trajectory, exposure and keyframe lines, and the row last. ``reconcile``
 cuts the other files back to the last committed frame, so ``--resume`` continues from a state in
-which every file agrees, wherever the run was stopped.
+which every file agrees, wherever the run was stopped. A pipeline whose state cannot be rebuilt
+from these files (the monocular one: its window and points) also leaves a :class:`Checkpoint`
+after each committed frame; its resume cuts the run back to the checkpoint's frame.
 """
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import hashlib
 import io
 import os
 import pathlib
+import pickle
 import shutil
 
 import numpy as np
 import yaml
 
 from ..config import RunConfig, as_dict
-from ..errors import MbavoError
+from ..errors import DataError, MbavoError
 from ..evaluation.runs import RUN_PLOTS
+from ..io import PlyWriter, read_ply
 
-__all__ = ["RUN_FILES", "clear_run", "sequence_fingerprint", "check_resume", "record_run", "reconcile", "committed_rows"]
+__all__ = ["RUN_FILES", "clear_run", "sequence_fingerprint", "check_resume", "record_run", "reconcile", "committed_rows",
+           "Checkpoint", "write_checkpoint", "read_checkpoint", "cut_to_checkpoint"]
 
-RUN_FILES = ("trajectory.txt", "exposure.txt", "exposure_spline.txt", "keyframes.txt", "frames.csv", "config.yaml", "run.yaml", *RUN_PLOTS)
+CHECKPOINT = "checkpoint.pkl"
+RUN_FILES = ("trajectory.txt", "exposure.txt", "exposure_spline.txt", "keyframes.txt", "frames.csv", "config.yaml", "run.yaml",
+             "points.ply", CHECKPOINT, *RUN_PLOTS)
 TEXT_RECORDS = ("trajectory.txt", "exposure.txt", "exposure_spline.txt", "keyframes.txt")  # stamped lines, cut back by ``reconcile``
 
 
@@ -135,15 +143,74 @@ def _cut(path: pathlib.Path, last_stamp: float) -> None:
         _write_atomic(path, b"".join(keep))
 
 
-def reconcile(out: pathlib.Path) -> list[dict]:
-    """Cut a run folder back to its last committed frame (the last complete frames.csv row): a
-    partial row and the text records stamped later go. Returns the committed rows."""
+def reconcile(out: pathlib.Path, last_index: int | None = None) -> list[dict]:
+    """Cut a run folder back to its last committed frame (the last complete frames.csv row), or to
+    frame ``last_index`` when given: later rows, a partial row and the text records stamped later
+    go. Returns the rows kept."""
     path = out / "frames.csv"
     data = path.read_bytes() if path.is_file() else b""
-    if _complete_lines(data) != data:
-        _write_atomic(path, _complete_lines(data))
-    rows = _rows(data)
+    rows, kept = _rows(data), _complete_lines(data)
+    if last_index is not None:
+        rows = [r for r in rows if int(r["index"]) <= last_index]
+        kept = b"".join(kept.splitlines(keepends=True)[: 1 + len(rows)])  # the header and those rows
+    if kept != data:
+        _write_atomic(path, kept)
     last = float(rows[-1]["timestamp"]) if rows else -np.inf
     for name in TEXT_RECORDS:
         _cut(out / name, last)
+    return rows
+
+
+@dataclasses.dataclass(frozen=True)
+class Checkpoint:
+    """A pipeline's state after frame ``index`` was committed, with what the run had written then
+    beyond the stamped records: ``points`` vertices in points.ply and ``triptychs`` pictures."""
+
+    index: int
+    state: object
+    points: int = 0
+    triptychs: int = 0
+
+
+def write_checkpoint(out: pathlib.Path, checkpoint: Checkpoint) -> None:
+    """``checkpoint`` pickled to the run folder, replacing the previous one in one step."""
+    tmp = out / (CHECKPOINT + ".tmp")
+    with open(tmp, "wb") as fh:
+        pickle.dump(checkpoint, fh, protocol=pickle.HIGHEST_PROTOCOL)
+    os.replace(tmp, out / CHECKPOINT)
+
+
+def read_checkpoint(out: pathlib.Path) -> Checkpoint:
+    """The run folder's :class:`Checkpoint` (a file this program wrote: pickle runs code as it loads)."""
+    path = out / CHECKPOINT
+    try:
+        with open(path, "rb") as fh:
+            checkpoint = pickle.load(fh)
+    except FileNotFoundError:
+        raise DataError(path, "missing, so the monocular state is not known: cannot --resume (run without --resume to start afresh)") from None
+    except Exception as exc:  # a file of another version, or cut short
+        raise DataError(path, f"unreadable ({type(exc).__name__}): cannot --resume (run without --resume to start afresh)") from None
+    if not isinstance(checkpoint, Checkpoint):
+        raise DataError(path, "not a checkpoint of this program: cannot --resume (run without --resume to start afresh)")
+    return checkpoint
+
+
+def cut_to_checkpoint(out: pathlib.Path, checkpoint: Checkpoint) -> list[dict]:
+    """The run folder cut back to the checkpoint's frame: the rows and stamped records after it
+    (``reconcile``), the points.ply vertices and triptychs written after it. Returns the rows kept."""
+    rows = reconcile(out, checkpoint.index)
+    if not rows or int(rows[-1]["index"]) != checkpoint.index:
+        raise DataError(out / CHECKPOINT, f"records frame {checkpoint.index}, which frames.csv does not hold: cannot --resume "
+                        "(run without --resume to start afresh)")
+    ply = out / "points.ply"
+    if ply.is_file():
+        xyz, intensity = read_ply(ply)
+        if len(xyz) != checkpoint.points:
+            writer = PlyWriter(ply.with_name(ply.name + ".tmp"))
+            writer.write(xyz[: checkpoint.points], intensity[: checkpoint.points])
+            writer.close()
+            os.replace(ply.with_name(ply.name + ".tmp"), ply)
+    for picture in out.glob("triptych_*.png"):
+        if int(picture.stem.split("_")[1]) >= checkpoint.triptychs:
+            picture.unlink()
     return rows

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import typing
 from typing import Any
 
 import equinox as eqx
@@ -120,6 +121,8 @@ class MonoPipeline(RGBDPipeline):
     """Blur-aware monocular visual odometry: the blur-aware tracker over a windowed photometric
     bundle adjustment of deblurred keyframes (depth, when the sequence has it, is not used; keyframes
     are deblurred with ``mono.deblur_regularization``)."""
+
+    checkpoints: typing.ClassVar[bool] = True  # --resume: its window and points cannot be rebuilt from the run's records
 
     def __post_init__(self):
         config = self.config.replace(tracker=dict(depth_weight=0.0), deblur=dict(regularization=self.config.mono.deblur_regularization))

@@ -76,8 +76,9 @@ class RunOutputs:
 
     def __init__(self, out, camera: PinholeCamera, response_gamma: float, append: bool = False):
         self.out, self.camera, self.gamma, self.append = pathlib.Path(out), camera, response_gamma, append
-        self.points = self.spline = None
         self.out.mkdir(parents=True, exist_ok=True)
+        self.spline = None
+        self.points = PlyWriter(self.out / "points.ply", append=True) if append and (self.out / "points.ply").is_file() else None
         self.triptychs = len(list(self.out.glob("triptych_*.png")))
         self.trajectory = TrajectoryWriter(self.out / "trajectory.txt", append=append)
         self.exposure = TrajectoryWriter(self.out / "exposure.txt", EXPOSURE_HEADER, append=append)
@@ -128,6 +129,11 @@ class RunOutputs:
         if self.points is None:
             self.points = PlyWriter(self.out / "points.ply", append=self.append)
         self.points.write(cloud.xyz, cloud.intensity)
+
+    @property
+    def point_count(self) -> int:
+        """Vertices in points.ply so far."""
+        return 0 if self.points is None else self.points.count
 
     def save_keyframe_image(self, stamp: float, image: np.ndarray) -> None:
         path = keyframe_image_path(self.out, stamp)

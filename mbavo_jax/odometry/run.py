@@ -26,7 +26,7 @@ from ..runtime import compile_counts, enable_compilation_cache
 from ..tracking import Keyframe, Status
 from ..tracking.memory import check_memory
 from .exposure import RawFrame, with_next
-from .folder import check_resume, clear_run, reconcile, record_run
+from .folder import Checkpoint, check_resume, clear_run, cut_to_checkpoint, read_checkpoint, reconcile, record_run, write_checkpoint
 from .outputs import RunOutputs, keyframe_image_path, read_keyframe_image
 from .mono import MonoPipeline
 from .rgbd import RGBDPipeline
@@ -110,10 +110,17 @@ def start_state(seq, pipeline: Pipeline, progress: bool = False) -> RunState:
     return pipeline.start_state(seq, progress) if hasattr(pipeline, "start_state") else RunState()
 
 
+def checkpoints(pipeline: Pipeline) -> bool:
+    """Whether ``pipeline`` resumes from a checkpoint (``folder.Checkpoint``) rather than from its records."""
+    return getattr(pipeline, "checkpoints", False)
+
+
 def resume_state(out, seq, pipeline: Pipeline, progress: bool = False) -> tuple[RunState, int]:
     """(state, index of the next frame) of the run in ``out``, cut back to its last committed frame
     (``folder.reconcile``), or (``start_state``, 0) when it holds none. The state is the one the
-    loop had after that frame, so the resumed run goes on exactly as the uninterrupted one."""
+    loop had after that frame, so the resumed run goes on exactly as the uninterrupted one: rebuilt
+    from the records, or, for a pipeline that ``checkpoints``, its last checkpoint (the run cut
+    back to that frame)."""
     out = pathlib.Path(out)
     rows = reconcile(out)
     if not rows:
@@ -121,6 +128,10 @@ def resume_state(out, seq, pipeline: Pipeline, progress: bool = False) -> tuple[
             raise DataError(out / "frames.csv", "missing or empty, so the run's frames are not known: cannot --resume "
                             "(run without --resume to start afresh)")
         return start_state(seq, pipeline, progress), 0
+    if checkpoints(pipeline):
+        checkpoint = read_checkpoint(out)
+        cut_to_checkpoint(out, checkpoint)
+        return checkpoint.state, checkpoint.index + 1
     (t_done, p_done), (t_kf, p_kf) = _records(out, rows)
     start, counters = int(rows[-1]["index"]) + 1, _loop_counters(rows)
     k = int(np.argmin(np.abs(seq.timestamps - t_kf[-1])))
@@ -202,8 +213,6 @@ def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False
     t_start, counts_start, startup = time.perf_counter(), compile_counts(), None
     if isinstance(pipeline, MonoPipeline) and seq.has_depth:  # monocular: the depth maps are not read
         seq = open_sequence(seq.path, seq.kind, depth=False)
-    if resume and isinstance(pipeline, MonoPipeline):
-        raise MbavoError("--resume is not available for monocular runs yet: run without --resume to start afresh")
     state, start, note = _prepare(out, seq, config, resume, resume_anyway, pipeline, progress)
     first, outcome = state, None
     n_total = len(seq) if max_frames is None else min(len(seq), max_frames)
@@ -214,6 +223,9 @@ def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False
             frame, before = seq[index], state
             state, outcome = pipeline.step(state, frame, index)
             outputs.write(outcome)
+            every = config.runtime.checkpoint_every
+            if checkpoints(pipeline) and every and ((index + 1) % every == 0 or index + 1 == n_total):
+                write_checkpoint(out, Checkpoint(index, state, outputs.point_count, outputs.triptychs))
             if observer is not None:
                 observer(frame, before, outcome, state)
             if startup is None and outcome.T_world_mid is not None and index > start:

@@ -289,7 +289,9 @@ class DeblurConfig(Settings):
     n: int = setting(0, "virtual frames of the blur operator; 0: one per pixel of blur (95th percentile), a power of two", NONNEG)
     n_min: int = setting(8, "with n = 0: at least this many virtual frames", AT_LEAST_1)
     n_max: int = setting(64, "with n = 0: at most this many virtual frames", AT_LEAST_1)
-    iterations: int = setting(30, "conjugate-gradient iterations", AT_LEAST_1)
+    iterations: int = setting(30, "conjugate-gradient iterations, at most", AT_LEAST_1)
+    tolerance: float = setting(0.01, "stop CG once the residual of the normal equations is below this fraction of the first "
+                               "(0: always all iterations)", Check(lambda v: 0 <= v < 1, "in [0, 1)"))
     regularization: float = setting(2e-2, "weight lambda of the gradient penalty", NONNEG)
     solver: str = setting("table", "table (every sample's bilinear cell found once per keyframe) | render (render_blurry at "
                           "every iteration: the reference, slower)", choices=("table", "render"))

@@ -6,8 +6,9 @@ the mid-exposure pose, transferred through the frame's depth planes) is linear i
 
     min_x ‖A x − b‖² + λ ‖∇x‖²
 
-by conjugate gradients on the normal equations, starting from b, with one of two forms of A
-(``DeblurConfig.solver``):
+by conjugate gradients on the normal equations, starting from b, for at most
+``DeblurConfig.iterations`` steps (the table solver stops earlier once the residual has fallen to
+``DeblurConfig.tolerance`` of the first), with one of two forms of A (``DeblurConfig.solver``):
 
 * ``table`` (default): every sample's plane transfer is done once per frame; a
   :class:`SamplingTable` keeps its bilinear cell (int32) and position in the cell (2 x uint16),
@@ -175,28 +176,35 @@ def table_blur_adjoint(table: SamplingTable, y: Float[Array, "H W"]) -> Float[Ar
     return total.reshape(h, w)
 
 
-def _cg(op, rhs, x, iterations: int):
-    """``iterations`` conjugate-gradient steps on op(x) = rhs (op symmetric positive) from x."""
+def _cg(op, rhs, x, iterations: int, tolerance=0.0):
+    """Conjugate-gradient steps on op(x) = rhs (op symmetric positive) from x: ``iterations`` of
+    them, fewer once the residual is below ``tolerance`` times the first one. Returns (x, steps)."""
     r = rhs - op(x)
+    rs0 = jnp.sum(r * r)
 
-    def body(_, state):
-        x, r, p, rs = state
+    def cond(state):
+        i, _, _, _, rs = state
+        return (i < iterations) & (rs > tolerance * tolerance * rs0)
+
+    def body(state):
+        i, x, r, p, rs = state
         Ap = op(p)
         alpha = rs / jnp.maximum(jnp.sum(p * Ap), 1e-20)
         x = x + alpha * p
         r = r - alpha * Ap
         rs_new = jnp.sum(r * r)
         p = r + (rs_new / jnp.maximum(rs, 1e-30)) * p
-        return x, r, p, rs_new
+        return i + 1, x, r, p, rs_new
 
-    x, *_ = jax.lax.fori_loop(0, iterations, body, (x, r, r, jnp.sum(r * r)))
-    return x
+    i, x, *_ = jax.lax.while_loop(cond, body, (jnp.int32(0), x, r, r, rs0))
+    return x, i
 
 
 def _solve(blur, adjoint, valid: Bool[Array, "H W"], blurry: Float[Array, "H W"], x0: Float[Array, "H W"], lam,
-           iterations: int):
+           iterations: int, tolerance=0.0):
     """min ‖A x − b‖² + λ‖∇x‖² over the valid pixels of b (A = ``blur``, linear; Aᵀ = ``adjoint``)
-    by CG on the normal equations from x0; pixels that no valid pixel sees keep the blurry value."""
+    by CG on the normal equations from x0 (:func:`_cg`); pixels that no valid pixel sees keep the
+    blurry value. Returns (x, CG steps)."""
     def normal(x):
         atax = adjoint(jnp.where(valid, blur(x), 0.0))
         reg = jax.grad(lambda z: 0.5 * sum(jnp.sum(g * g) for g in _grad_ops(z)))(x)
@@ -205,7 +213,7 @@ def _solve(blur, adjoint, valid: Bool[Array, "H W"], blurry: Float[Array, "H W"]
     rhs = adjoint(jnp.where(valid, blurry, 0.0))
     seen = adjoint(valid.astype(blurry.dtype)) > 1e-6
     op = lambda x: jnp.where(seen, normal(x), x)
-    return _cg(op, jnp.where(seen, rhs, blurry), jnp.where(seen, x0, blurry), iterations)
+    return _cg(op, jnp.where(seen, rhs, blurry), jnp.where(seen, x0, blurry), iterations, tolerance)
 
 
 @partial(jax.jit, static_argnames=("n", "iterations", "rolling"))
@@ -215,17 +223,18 @@ def _deblur_render(blurry, planes, camera, traj, lam, readout, n, iterations, ro
     blur = lambda x: render_blurry(x, planes, camera, traj, n, readout)[0]
     adjoint = lambda y: jax.linear_transpose(blur, blurry)(y)[0]
     valid = render_blurry(jnp.ones_like(blurry), planes, camera, traj, n, readout)[1]
-    return jnp.clip(_solve(blur, adjoint, valid, blurry, blurry, lam, iterations), 0.0, 1.0)
+    return jnp.clip(_solve(blur, adjoint, valid, blurry, blurry, lam, iterations)[0], 0.0, 1.0)
 
 
 @partial(jax.jit, static_argnames=("n", "iterations", "rolling"))
-def _deblur_table(blurry, planes, camera, traj, lam, readout, n, iterations, rolling):
+def _deblur_table(blurry, planes, camera, traj, lam, readout, n, iterations, rolling, tolerance=0.0):
     """The table solver: A is a :class:`SamplingTable` built once (:func:`table_blur`,
-    :func:`table_blur_adjoint`)."""
+    :func:`table_blur_adjoint`). Returns (image, CG steps)."""
     readout = readout if rolling else 0.0
     table = sampling_table(planes, camera, traj, n, readout, rolling)
     blur, adjoint = partial(table_blur, table), partial(table_blur_adjoint, table)
-    return jnp.clip(_solve(blur, adjoint, table.valid, blurry, blurry, lam, iterations), 0.0, 1.0)
+    x, steps = _solve(blur, adjoint, table.valid, blurry, blurry, lam, iterations, tolerance)
+    return jnp.clip(x, 0.0, 1.0), steps
 
 
 def deblur(blurry, depth, camera: PinholeCamera, trajectory: ExposurePath, config: DeblurConfig = DeblurConfig(),
@@ -238,9 +247,12 @@ def deblur(blurry, depth, camera: PinholeCamera, trajectory: ExposurePath, confi
     n = choose_deblur_n(depth, camera, trajectory, config, readout)
     planes = plane_depths_from_keyframe(jnp.asarray(np.asarray(depth, np.float32)), camera, Pose.identity())
     huge = blurry.shape[0] * blurry.shape[1] >= TABLE_MAX_PIXELS  # the table's flat indices would not be exact
-    solve = _deblur_render if config.solver == "render" or huge else _deblur_table
-    x = solve(jnp.asarray(linearize(blurry, response_gamma)), planes, camera, trajectory.about_middle(),
-              jnp.float32(config.regularization), jnp.float32(readout), n, config.iterations, readout > 0)
+    args = (jnp.asarray(linearize(blurry, response_gamma)), planes, camera, trajectory.about_middle(),
+            jnp.float32(config.regularization), jnp.float32(readout), n, config.iterations, readout > 0)
+    if config.solver == "render" or huge:
+        x = _deblur_render(*args)
+    else:
+        x, _ = _deblur_table(*args, jnp.float32(config.tolerance))
     return delinearize(np.asarray(x), response_gamma)
 
 

@@ -1,7 +1,8 @@
 """The table solver of keyframe deblurring (``deblur.solver = table``): its precomputed operator is
 the blur model (``render_blurry``) with and without a rolling-shutter readout, its adjoint is the
 operator's transpose, and the deblurred frame is sharper than its input and as sharp as the
-reference solver's (``render``). Small images (160x120)."""
+reference solver's (``render``); CG stops at its tolerance, which costs little sharpness. Small
+images (160x120)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import pytest
 
 from mbavo_jax.blur import render_blurry
 from mbavo_jax.config import DeblurConfig
-from mbavo_jax.deblur import deblur, psnr, sampling_table, table_blur, table_blur_adjoint
+from mbavo_jax.deblur import _cg, deblur, psnr, sampling_table, table_blur, table_blur_adjoint
 from mbavo_jax.geometry import ExposureTrajectory
 from tests.test_rolling_shutter import GT, render, scene
 
@@ -68,8 +69,29 @@ def deblurred_psnr(rho: float, **settings) -> tuple[float, float]:
 
 @pytest.mark.parametrize("rho", [0.0, 0.6])
 def test_table_solver_sharpens_like_the_reference(rho):
-    table, blurry_psnr = deblurred_psnr(rho, solver="table")
+    table, blurry_psnr = deblurred_psnr(rho, solver="table", tolerance=0.0)  # all iterations, as the reference
     reference, _ = deblurred_psnr(rho, solver="render")
     assert table > blurry_psnr + 2.0, (table, blurry_psnr)
     assert abs(table - reference) < 0.05, (table, reference)
 
+
+def test_cg_stops_at_its_tolerance(rng):
+    """With a tolerance CG stops once the residual has fallen that far (and still solves the
+    system to it); without one it takes every iteration."""
+    m = rng.normal(size=(60, 60)).astype(np.float32)
+    a = jnp.asarray(m @ m.T / 60 + 0.05 * np.eye(60, dtype=np.float32))
+    b, x0 = jnp.asarray(rng.normal(size=60).astype(np.float32)), jnp.zeros(60)
+    op = lambda x: a @ x
+    x, steps = _cg(op, b, x0, 50, 1e-2)
+    assert 0 < int(steps) < 50
+    assert float(jnp.linalg.norm(b - op(x))) <= 1e-2 * float(jnp.linalg.norm(b)) * 1.01
+    _, all_steps = _cg(op, b, x0, 50, 0.0)
+    assert int(all_steps) == 50
+
+
+def test_default_tolerance_keeps_the_sharpness():
+    """Stopping at the default tolerance keeps at least 90 % of the PSNR gain of every iteration
+    (on this clean scene 19.7 of 20.6 dB; on generated 640x480 frames within 0.15 dB)."""
+    early, blurry_psnr = deblurred_psnr(0.0)
+    full, _ = deblurred_psnr(0.0, tolerance=0.0)
+    assert early - blurry_psnr > 0.9 * (full - blurry_psnr), (early, full, blurry_psnr)

@@ -7,8 +7,8 @@ the mid-exposure pose, transferred through the frame's depth planes) is linear i
     min_x ‖A x − b‖² + λ ‖∇x‖²
 
 by conjugate gradients on the normal equations, starting from b, for at most
-``DeblurConfig.iterations`` steps (the table solver stops earlier once the residual has fallen to
-``DeblurConfig.tolerance`` of the first), with one of two forms of A (``DeblurConfig.solver``):
+``DeblurConfig.iterations`` steps (fewer once the residual has fallen to ``DeblurConfig.tolerance``
+of the first), with one of two forms of A (``DeblurConfig.solver``):
 
 * ``table`` (default): every sample's plane transfer is done once per frame; a
   :class:`SamplingTable` keeps its bilinear cell (int32) and position in the cell (2 x uint16),
@@ -217,13 +217,15 @@ def _solve(blur, adjoint, valid: Bool[Array, "H W"], blurry: Float[Array, "H W"]
 
 
 @partial(jax.jit, static_argnames=("n", "iterations", "rolling"))
-def _deblur_render(blurry, planes, camera, traj, lam, readout, n, iterations, rolling):
-    """The reference solver: A is ``render_blurry`` (every transfer redone at every application)."""
+def _deblur_render(blurry, planes, camera, traj, lam, readout, n, iterations, rolling, tolerance=0.0):
+    """The reference solver: A is ``render_blurry`` (every transfer redone at every application).
+    Returns (image, CG steps)."""
     readout = readout if rolling else 0.0  # a concrete 0: the global shutter's one-row program
     blur = lambda x: render_blurry(x, planes, camera, traj, n, readout)[0]
     adjoint = lambda y: jax.linear_transpose(blur, blurry)(y)[0]
     valid = render_blurry(jnp.ones_like(blurry), planes, camera, traj, n, readout)[1]
-    return jnp.clip(_solve(blur, adjoint, valid, blurry, blurry, lam, iterations)[0], 0.0, 1.0)
+    x, steps = _solve(blur, adjoint, valid, blurry, blurry, lam, iterations, tolerance)
+    return jnp.clip(x, 0.0, 1.0), steps
 
 
 @partial(jax.jit, static_argnames=("n", "iterations", "rolling"))
@@ -247,12 +249,10 @@ def deblur(blurry, depth, camera: PinholeCamera, trajectory: ExposurePath, confi
     n = choose_deblur_n(depth, camera, trajectory, config, readout)
     planes = plane_depths_from_keyframe(jnp.asarray(np.asarray(depth, np.float32)), camera, Pose.identity())
     huge = blurry.shape[0] * blurry.shape[1] >= TABLE_MAX_PIXELS  # the table's flat indices would not be exact
-    args = (jnp.asarray(linearize(blurry, response_gamma)), planes, camera, trajectory.about_middle(),
-            jnp.float32(config.regularization), jnp.float32(readout), n, config.iterations, readout > 0)
-    if config.solver == "render" or huge:
-        x = _deblur_render(*args)
-    else:
-        x, _ = _deblur_table(*args, jnp.float32(config.tolerance))
+    solve = _deblur_render if config.solver == "render" or huge else _deblur_table
+    x, _ = solve(jnp.asarray(linearize(blurry, response_gamma)), planes, camera, trajectory.about_middle(),
+                 jnp.float32(config.regularization), jnp.float32(readout), n, config.iterations, readout > 0,
+                 jnp.float32(config.tolerance))
     return delinearize(np.asarray(x), response_gamma)
 
 

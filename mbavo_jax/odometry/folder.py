@@ -163,13 +163,12 @@ def reconcile(out: pathlib.Path, last_index: int | None = None) -> list[dict]:
 
 @dataclasses.dataclass(frozen=True)
 class Checkpoint:
-    """A pipeline's state after frame ``index`` was committed, with what the run had written then
-    beyond the stamped records: ``points`` vertices in points.ply and ``triptychs`` pictures."""
+    """A pipeline's state (a ``RunState``) after frame ``index`` was committed, with the vertices
+    points.ply had then (``points``); the triptychs drawn are the state's own count."""
 
     index: int
     state: object
     points: int = 0
-    triptychs: int = 0
 
 
 def write_checkpoint(out: pathlib.Path, checkpoint: Checkpoint) -> None:
@@ -211,6 +210,6 @@ def cut_to_checkpoint(out: pathlib.Path, checkpoint: Checkpoint) -> list[dict]:
             writer.close()
             os.replace(ply.with_name(ply.name + ".tmp"), ply)
     for picture in out.glob("triptych_*.png"):
-        if int(picture.stem.split("_")[1]) >= checkpoint.triptychs:
+        if int(picture.stem.split("_")[1]) >= checkpoint.state.triptychs:
             picture.unlink()
     return rows

@@ -225,7 +225,7 @@ def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False
             outputs.write(outcome)
             every = config.runtime.checkpoint_every
             if checkpoints(pipeline) and every and ((index + 1) % every == 0 or index + 1 == n_total):
-                write_checkpoint(out, Checkpoint(index, state, outputs.point_count, outputs.triptychs))
+                write_checkpoint(out, Checkpoint(index, state, outputs.point_count))
             if observer is not None:
                 observer(frame, before, outcome, state)
             if startup is None and outcome.T_world_mid is not None and index > start:

@@ -48,7 +48,7 @@ def import_open3d():
     libusb-package wheel ships is loaded first."""
     try:
         import open3d
-    except OSError as exc:
+    except (OSError, ImportError) as exc:  # which of the two depends on the Python and Open3D build
         if "libusb" not in str(exc):
             raise
         import ctypes

@@ -1,9 +1,10 @@
 """``mbavo bench speed``: where the whole loop's time goes, start-up with and without the compilation
 cache, and memory over a long run.
 
-* timing: our loop and the same loop blind to blur (n = 1), unprofiled, run in turns in one process
-  after a warm-up of each (so that tracing and compilation are not counted); the ratios are of
-  their medians (cProfile's overhead falls unevenly on Python-heavy paths, so it gives no ratio);
+* timing: our loop, the same loop blind to blur (n = 1) and, with ``--compare``, ours with other
+  settings, unprofiled, run in turns in one process after a warm-up of each (so that tracing and
+  compilation are not counted); the ratios are of their medians (cProfile's overhead falls unevenly
+  on Python-heavy paths, so it gives no ratio); each variant's ATE, keyframes and keyframe PSNR;
 * profile: one more run of ours under cProfile, its wall time split into tracking, deblurring,
   keyframe creation, the monocular back-end, reading frames and writing outputs (the rest is the
   loop's own bookkeeping), and the seconds spent compiling (inside those parts);
@@ -135,16 +136,36 @@ def speed_benchmark(cfg: BenchConfig, quiet: bool = False) -> dict:
 
     out, results = pathlib.Path(cfg.out).parent / "bench_speed", {}
     presets = {p: bench_data(p, cfg, cfg.frames, quiet) for p in cfg.preset.split(",") if p}
+    compare = [o.strip() for o in cfg.compare.split(";") if o.strip()]
     for name, data in with_hidden_exposure(presets, cfg.hide_exposure).items():
         seq = open_sequence(data)
         startup = startup_runs(data, out / name / "startup") if cfg.startup else {}
         config = load_config(None, [], calibration_of(seq.meta))
-        timed = timed_runs(seq, out / name, {"ours": config, "n1": config.replace(tracker=dict(blur_aware=False))}, cfg.frames, cfg.speed_reps)
+        variants = {"ours": config, "n1": config.replace(tracker=dict(blur_aware=False))}
+        if compare:
+            variants["compare"] = load_config(None, compare, calibration_of(seq.meta))
+        timed = timed_runs(seq, out / name, variants, cfg.frames, cfg.speed_reps)
         profile = profile_run(seq, out / name / "profiled", config, max_frames=cfg.frames)
         peer = {} if cfg.no_peers else run_peer(seq, out / name / "open3d", "open3d", config.evaluation, cfg.peer_depth_max)
-        results[name] = {"frames": profile["frames"], "seconds": timed, "profile": profile,
-                         "open3d_s_per_frame": peer.get("seconds_per_frame"), "startup": startup}
+        results[name] = {"frames": profile["frames"], "seconds": timed, "profile": profile, "scores": variant_scores(seq, out / name, variants),
+                         "compare": "; ".join(compare), "open3d_s_per_frame": peer.get("seconds_per_frame"), "startup": startup}
     return results
+
+
+def variant_scores(seq, out, variants: dict[str, RunConfig]) -> dict[str, dict]:
+    """ATE (m), keyframes and mean keyframe PSNR (dB, against the generated sharp frames) of each
+    variant's first timed run (``out/<variant>/run1``)."""
+    from .bench import deblur_quality
+    from .evaluation import evaluate_run
+    from .io import read_tum_trajectory
+
+    scores = {}
+    for name, config in variants.items():
+        run = pathlib.Path(out) / name / "run1"
+        scores[name] = {"ate_m": evaluate_run(run, seq.groundtruth, seq.timestamps, config.evaluation).get("ate_rmse_m"),
+                        "keyframes": len(read_tum_trajectory(run / "keyframes.txt")[0]),
+                        "keyframe_psnr": deblur_quality(seq, run).get("psnr_deblurred")}
+    return scores
 
 
 def format_speed_table(res: dict) -> str:
@@ -157,8 +178,9 @@ def format_speed_table(res: dict) -> str:
         ratio = f"{ours / peer:.1f}x Open3D hybrid ({peer:.3f} s)" if peer else "no Open3D"
         runs = {k: ", ".join(f"{x:.2f}" for x in v) for k, v in r["seconds"].items()}
         lines += [f"[{preset}] whole loop {ours:.3f} s/frame over {r['frames']} frames = {ratio}; {ours / blind:.2f}x ours "
-                  f"blind to blur (n = 1, {blind:.3f} s); medians of unprofiled runs in turns (ours {runs['ours']} s; n = 1 {runs['n1']} s)",
-                  f"where the time goes, one run under cProfile ({o['seconds']:.2f} s):", "| part | seconds | share |", "|---|---|---|"]
+                  f"blind to blur (n = 1, {blind:.3f} s); medians of unprofiled runs in turns (ours {runs['ours']} s; n = 1 {runs['n1']} s)"]
+        lines += _score_lines(r, frames)
+        lines += [f"where the time goes, one run under cProfile ({o['seconds']:.2f} s):", "| part | seconds | share |", "|---|---|---|"]
         for part, sec in [*o["parts"].items(), ("rest", o["rest"])]:
             lines.append(f"| {part} | {sec:.2f} | {100 * sec / o['seconds']:.0f} % |")
         lines.append(f"| (compiling or loading programs, inside the parts) | {o['compile_seconds']:.2f} | |")
@@ -167,6 +189,21 @@ def format_speed_table(res: dict) -> str:
             lines += [f"| {k} | {v['compiled']} | {v['cache_hits']} | {v['startup_s']:.1f} |" for k, v in r["startup"].items()]
         lines.append("")
     return "\n".join(lines)
+
+
+def _score_lines(r: dict, frames: int) -> list[str]:
+    """The variants side by side: seconds per frame (median), its ratio to ours, ATE, keyframes, PSNR."""
+    if not r.get("scores"):
+        return []
+    ours = statistics.median(r["seconds"]["ours"])
+    label = {"ours": "ours", "n1": "n = 1", "compare": f"ours with {r.get('compare')}"}
+    lines = ["| variant | s/frame | x ours | ATE (mm) | keyframes | keyframe PSNR (dB) |", "|---|---|---|---|---|---|"]
+    for name, sc in r["scores"].items():
+        sec = statistics.median(r["seconds"][name])
+        ate = "lost" if sc["ate_m"] is None else f"{1000 * sc['ate_m']:.2f}"
+        psnr = "-" if sc["keyframe_psnr"] is None else f"{sc['keyframe_psnr']:.2f}"
+        lines.append(f"| {label[name]} | {sec / frames:.3f} | {sec / ours:.2f} | {ate} | {sc['keyframes']} | {psnr} |")
+    return lines
 
 
 def main_speed(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:

@@ -449,6 +449,8 @@ class BenchConfig(Settings):
     speed_reps: int = setting(3, "speed: unprofiled runs each of ours and of n = 1, in turns after a warm-up; ratios of their medians",
                               AT_LEAST_1)
     startup: bool = setting(True, "speed: also time the start-up of fresh processes (empty cache, full cache, none)")
+    compare: str = setting("", "speed: also run the loop with these settings ('section.key=value', ';'-separated), timed in turns "
+                           "with ours and scored beside it (ATE, keyframes, keyframe PSNR); '': none")
     readouts: str = setting("0,15,30", "rolling-shutter: readout times (ms) of the generated sequences, comma-separated")
     shake_deg: float = setting(0.5, "rolling-shutter: handheld-shake amplitude (deg) of a second, curved-path set of sequences "
                                "(every preset and readout again; 0 = none)", NONNEG)

@@ -65,3 +65,15 @@ def test_speed_table_takes_its_ratios_from_the_medians_of_the_unprofiled_runs():
                  "open3d_s_per_frame": 0.1, "startup": {}}}
     head = format_speed_table(res).splitlines()[0]
     assert "whole loop 0.300 s/frame" in head and "3.0x Open3D" in head and "3.00x ours blind to blur (n = 1, 0.100 s)" in head
+
+
+def test_speed_table_puts_the_compared_settings_beside_ours():
+    profile = {"seconds": 9.0, "parts": dict.fromkeys(PROFILE_PARTS, 1.0), "rest": 3.0, "compile_seconds": 0.0}
+    score = lambda ate, psnr: {"ate_m": ate, "keyframes": 4, "keyframe_psnr": psnr}
+    res = {"p": {"frames": 10, "seconds": {"ours": [3.0, 2.0, 9.0], "n1": [1.0, 1.0, 5.0], "compare": [1.5, 1.5, 7.0]}, "profile": profile,
+                 "scores": {"ours": score(0.002, 25.0), "n1": score(None, None), "compare": score(0.0031, 25.5)},
+                 "compare": "deblur.iterations=8", "open3d_s_per_frame": 0.1, "startup": {}}}
+    lines = format_speed_table(res).splitlines()
+    assert "| ours | 0.300 | 1.00 | 2.00 | 4 | 25.00 |" in lines
+    assert "| n = 1 | 0.100 | 0.33 | lost | 4 | - |" in lines
+    assert "| ours with deblur.iterations=8 | 0.150 | 0.50 | 3.10 | 4 | 25.50 |" in lines

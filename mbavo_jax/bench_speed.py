@@ -19,6 +19,7 @@ from __future__ import annotations
 import cProfile
 import csv
 import json
+import math
 import pathlib
 import pstats
 import statistics
@@ -140,10 +141,11 @@ def speed_benchmark(cfg: BenchConfig, quiet: bool = False) -> dict:
     for name, data in with_hidden_exposure(presets, cfg.hide_exposure).items():
         seq = open_sequence(data)
         startup = startup_runs(data, out / name / "startup") if cfg.startup else {}
-        config = load_config(None, [], calibration_of(seq.meta))
+        calibration = calibration_of(seq.meta)
+        config = load_config(None, [], calibration)
         variants = {"ours": config, "n1": config.replace(tracker=dict(blur_aware=False))}
         if compare:
-            variants["compare"] = load_config(None, compare, calibration_of(seq.meta))
+            variants["compare"] = load_config(None, compare, calibration)
         timed = timed_runs(seq, out / name, variants, cfg.frames, cfg.speed_reps)
         profile = profile_run(seq, out / name / "profiled", config, max_frames=cfg.frames)
         peer = {} if cfg.no_peers else run_peer(seq, out / name / "open3d", "open3d", config.evaluation, cfg.peer_depth_max)
@@ -153,16 +155,15 @@ def speed_benchmark(cfg: BenchConfig, quiet: bool = False) -> dict:
 
 
 def variant_scores(seq, out, variants: dict[str, RunConfig]) -> dict[str, dict]:
-    """ATE (m), keyframes and mean keyframe PSNR (dB, against the generated sharp frames) of each
-    variant's first timed run (``out/<variant>/run1``)."""
-    from .bench import deblur_quality
-    from .evaluation import evaluate_run
+    """ATE (m, NaN: lost), keyframes and mean keyframe PSNR (dB, against the generated sharp frames)
+    of each variant's first timed run (``out/<variant>/run1``), scored as ``mbavo bench odometry`` does."""
+    from .bench import _ate, deblur_quality
     from .io import read_tum_trajectory
 
     scores = {}
     for name, config in variants.items():
         run = pathlib.Path(out) / name / "run1"
-        scores[name] = {"ate_m": evaluate_run(run, seq.groundtruth, seq.timestamps, config.evaluation).get("ate_rmse_m"),
+        scores[name] = {"ate_m": _ate(seq, run, config.evaluation),
                         "keyframes": len(read_tum_trajectory(run / "keyframes.txt")[0]),
                         "keyframe_psnr": deblur_quality(seq, run).get("psnr_deblurred")}
     return scores
@@ -200,7 +201,7 @@ def _score_lines(r: dict, frames: int) -> list[str]:
     lines = ["| variant | s/frame | x ours | ATE (mm) | keyframes | keyframe PSNR (dB) |", "|---|---|---|---|---|---|"]
     for name, sc in r["scores"].items():
         sec = statistics.median(r["seconds"][name])
-        ate = "lost" if sc["ate_m"] is None else f"{1000 * sc['ate_m']:.2f}"
+        ate = "lost" if math.isnan(sc["ate_m"]) else f"{1000 * sc['ate_m']:.2f}"
         psnr = "-" if sc["keyframe_psnr"] is None else f"{sc['keyframe_psnr']:.2f}"
         lines.append(f"| {label[name]} | {sec / frames:.3f} | {sec / ours:.2f} | {ate} | {sc['keyframes']} | {psnr} |")
     return lines

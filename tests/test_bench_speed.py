@@ -5,7 +5,7 @@ import csv
 
 import pytest
 
-from mbavo_jax.bench_speed import PROFILE_PARTS, format_speed_table, memory_growth, profile_run, timed_runs
+from mbavo_jax.bench_speed import PROFILE_PARTS, format_speed_table, memory_growth, profile_run, timed_runs, variant_scores
 from mbavo_jax.config import RunConfig, TrackerConfig
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.odometry.outputs import CSV_COLUMNS
@@ -50,13 +50,18 @@ def test_timed_runs_alternate_after_a_warm_up(tmp_path):
     assert run_cli("synth", "--out", str(seq_dir), "--preset", "none", "--frames", "3", "--width", "96", "--height", "72", "-q") == 0
     seq = open_sequence(seq_dir)
     config = RunConfig()
-    runs = timed_runs(seq, tmp_path / "t", {"a": config.replace(tracker=dict(n=2)), "b": config.replace(tracker=dict(blur_aware=False))}, frames=3, reps=2)
+    variants = {"a": config.replace(tracker=dict(n=2)), "b": config.replace(tracker=dict(blur_aware=False))}
+    runs = timed_runs(seq, tmp_path / "t", variants, frames=3, reps=2)
     assert set(runs) == {"a", "b"} and all(len(v) == 2 and min(v) > 0 for v in runs.values())
     # the warm-up (run0) and both timed runs of each variant wrote a whole trajectory
     for name in runs:
         for rep in range(3):
             lines = (tmp_path / "t" / name / f"run{rep}" / "trajectory.txt").read_text().splitlines()
             assert len([x for x in lines if not x.startswith("#")]) == 3
+    # each variant scored on its first timed run (tracked, so an ATE, not NaN; the sharp keyframe near its truth)
+    scores = variant_scores(seq, tmp_path / "t", variants)
+    assert set(scores) == {"a", "b"}
+    assert all(0 <= s["ate_m"] < 1.0 and s["keyframes"] >= 1 and s["keyframe_psnr"] > 30 for s in scores.values()), scores
 
 
 def test_speed_table_takes_its_ratios_from_the_medians_of_the_unprofiled_runs():
@@ -71,7 +76,7 @@ def test_speed_table_puts_the_compared_settings_beside_ours():
     profile = {"seconds": 9.0, "parts": dict.fromkeys(PROFILE_PARTS, 1.0), "rest": 3.0, "compile_seconds": 0.0}
     score = lambda ate, psnr: {"ate_m": ate, "keyframes": 4, "keyframe_psnr": psnr}
     res = {"p": {"frames": 10, "seconds": {"ours": [3.0, 2.0, 9.0], "n1": [1.0, 1.0, 5.0], "compare": [1.5, 1.5, 7.0]}, "profile": profile,
-                 "scores": {"ours": score(0.002, 25.0), "n1": score(None, None), "compare": score(0.0031, 25.5)},
+                 "scores": {"ours": score(0.002, 25.0), "n1": score(float("nan"), None), "compare": score(0.0031, 25.5)},
                  "compare": "deblur.iterations=8", "open3d_s_per_frame": 0.1, "startup": {}}}
     lines = format_speed_table(res).splitlines()
     assert "| ours | 0.300 | 1.00 | 2.00 | 4 | 25.00 |" in lines

@@ -293,6 +293,9 @@ class DeblurConfig(Settings):
     tolerance: float = setting(0.01, "stop CG once the residual of the normal equations is below this fraction of the first "
                                "(0: always all iterations)", Check(lambda v: 0 <= v < 1, "in [0, 1)"))
     regularization: float = setting(2e-2, "weight lambda of the gradient penalty", NONNEG)
+    coarse_to_fine: bool = setting(True, "solve at half resolution first (half the virtual frames, the same iterations and "
+                                   "tolerance), then fine_iterations full-resolution steps from it upsampled")
+    fine_iterations: int = setting(6, "with coarse_to_fine: conjugate-gradient iterations at full resolution", AT_LEAST_1)
     solver: str = setting("table", "table (every sample's bilinear cell found once per keyframe) | render (render_blurry at "
                           "every iteration: the reference, slower)", choices=("table", "render"))
 

@@ -18,7 +18,9 @@ of the first), with one of two forms of A (``DeblurConfig.solver``):
   application) and Aᵀ its ``jax.linear_transpose``.
 
 Both honour a rolling-shutter readout (each row's own virtual times) and give the same image up
-to float32 rounding.
+to float32 rounding. With ``DeblurConfig.coarse_to_fine`` (default) the problem is solved first at
+half resolution (half the virtual frames), and its solution, upsampled, starts a few
+full-resolution steps (``DeblurConfig.fine_iterations``).
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from .geometry.camera import PinholeCamera
 from .geometry.pose import Pose
 from .geometry.spline import ExposurePath
 from .geometry.trajectory import row_times
-from .image import bilinear_cell, delinearize, lerp_cell, linearize
+from .image import cell_position, delinearize, downsample, lerp_cell, linearize
 
 __all__ = ["deblur", "choose_deblur_n", "exposure_blur_px", "psnr", "ssim", "SamplingTable", "sampling_table", "table_blur",
            "table_blur_adjoint"]
@@ -99,19 +101,18 @@ def _pose_table(traj: ExposurePath, n: int, h: int, readout, rolling: bool) -> F
     return virtual_pq_table(traj, row_times(n, jnp.arange(h, dtype=traj.start.q.dtype), h, readout))
 
 
-TABLE_MAX_PIXELS = 2**24  # the table solver's limit (:func:`deblur` falls back to the render solver above it)
+TABLE_MAX_PIXELS = 2**31 - 1  # the table solver's limit: int32 flat indices (:func:`deblur` falls back to the render solver above it)
+COARSE_MIN_SIZE = 16  # smaller images are solved at full resolution only (coarse_to_fine ignored)
 
 
 def sampling_table(planes: Float[Array, "H W"], camera: PinholeCamera, traj: ExposurePath, n: int, readout,
                    rolling: bool) -> SamplingTable:
     """The :class:`SamplingTable` of a frame with plane depths ``planes`` (NaN: none) along ``traj``
     (its own mid pose the reference), one virtual frame at a time: ``blur.virtual_sample``'s plane
-    point and validity, its cell read from an image holding its own flat indices (exact in float32
-    below 2^24 pixels)."""
+    point and validity, and its cell (``image.cell_position``)."""
     h, w = planes.shape
     if h * w >= TABLE_MAX_PIXELS:
-        raise ValueError(f"the table solver takes images below 2^24 pixels, got {w}x{h} (deblur.solver = render has no limit)")
-    index_image = jnp.arange(h * w, dtype=jnp.float32).reshape(h, w)
+        raise ValueError(f"the table solver takes images below 2^31 pixels, got {w}x{h} (deblur.solver = render has no limit)")
     d = planes.ravel()
     d_ok = jnp.isfinite(d) & (d > 0)
     v, u = jnp.meshgrid(jnp.arange(h, dtype=planes.dtype), jnp.arange(w, dtype=planes.dtype), indexing="ij")
@@ -119,10 +120,10 @@ def sampling_table(planes: Float[Array, "H W"], camera: PinholeCamera, traj: Exp
     depths = jnp.where(d_ok, d, 1.0)
     pqs = _pose_table(traj, n, h, readout, rolling)
 
-    def pixel(pq, ray, depth):
-        _, _, p_ref, ok = virtual_sample(index_image, camera, pq, ray, depth)
-        _, fu, fv, corners = bilinear_cell(index_image, camera.project(p_ref))
-        return corners[0].astype(jnp.int32), jnp.round(jnp.stack([fu, fv]) * FRACTION_ONE).astype(jnp.uint16), ok
+    def pixel(pq, ray, depth):  # the sample's value is not used: its gathers are dead code under jit
+        _, _, p_ref, ok = virtual_sample(planes, camera, pq, ray, depth)
+        _, u0, v0, fu, fv = cell_position(camera.project(p_ref), h, w)
+        return v0 * w + u0, jnp.round(jnp.stack([fu, fv]) * FRACTION_ONE).astype(jnp.uint16), ok
 
     def frame(pq_rows):  # (B, 7): this virtual frame's pose per row bucket; each pose's rotation built once
         if pq_rows.shape[0] == 1:
@@ -216,26 +217,46 @@ def _solve(blur, adjoint, valid: Bool[Array, "H W"], blurry: Float[Array, "H W"]
     return _cg(op, jnp.where(seen, rhs, blurry), jnp.where(seen, x0, blurry), iterations, tolerance)
 
 
-@partial(jax.jit, static_argnames=("n", "iterations", "rolling"))
-def _deblur_render(blurry, planes, camera, traj, lam, readout, n, iterations, rolling, tolerance=0.0):
-    """The reference solver: A is ``render_blurry`` (every transfer redone at every application).
-    Returns (image, CG steps)."""
-    readout = readout if rolling else 0.0  # a concrete 0: the global shutter's one-row program
+def _render_operator(planes, camera, traj, n: int, readout, rolling: bool):
+    """The reference form of A (``render_blurry``, every transfer redone at every application), Aᵀ
+    (its ``jax.linear_transpose``) and the valid pixels."""
     blur = lambda x: render_blurry(x, planes, camera, traj, n, readout)[0]
-    adjoint = lambda y: jax.linear_transpose(blur, blurry)(y)[0]
-    valid = render_blurry(jnp.ones_like(blurry), planes, camera, traj, n, readout)[1]
-    x, steps = _solve(blur, adjoint, valid, blurry, blurry, lam, iterations, tolerance)
-    return jnp.clip(x, 0.0, 1.0), steps
+    adjoint = lambda y: jax.linear_transpose(blur, planes)(y)[0]
+    return blur, adjoint, render_blurry(jnp.ones_like(planes), planes, camera, traj, n, readout)[1]
 
 
-@partial(jax.jit, static_argnames=("n", "iterations", "rolling"))
-def _deblur_table(blurry, planes, camera, traj, lam, readout, n, iterations, rolling, tolerance=0.0):
-    """The table solver: A is a :class:`SamplingTable` built once (:func:`table_blur`,
-    :func:`table_blur_adjoint`). Returns (image, CG steps)."""
-    readout = readout if rolling else 0.0
+def _table_operator(planes, camera, traj, n: int, readout, rolling: bool):
+    """A and Aᵀ from a :class:`SamplingTable` built once (:func:`table_blur`,
+    :func:`table_blur_adjoint`) and the valid pixels."""
     table = sampling_table(planes, camera, traj, n, readout, rolling)
-    blur, adjoint = partial(table_blur, table), partial(table_blur_adjoint, table)
-    x, steps = _solve(blur, adjoint, table.valid, blurry, blurry, lam, iterations, tolerance)
+    return partial(table_blur, table), partial(table_blur_adjoint, table), table.valid
+
+
+def _upsample(x: Float[Array, "h w"], shape: tuple[int, int]) -> Float[Array, "H W"]:
+    """Bilinear upsampling by two (``image.downsample``'s pixel centres), an odd last row or column
+    copied from its neighbour."""
+    h, w = x.shape
+    up = jax.image.resize(x, (2 * h, 2 * w), "linear")
+    return jnp.pad(up, ((0, shape[0] - 2 * h), (0, shape[1] - 2 * w)), mode="edge")
+
+
+@partial(jax.jit, static_argnames=("solver", "n", "iterations", "rolling", "coarse_n", "fine_iterations"))
+def _deblur(blurry, planes, camera, traj, lam, readout, tolerance, *, solver: str, n: int, iterations: int,
+            rolling: bool, coarse_n: int, fine_iterations: int):
+    """The solve of :func:`deblur` in linear radiance with operator form ``solver``. With
+    ``coarse_n`` > 0, first at half resolution (box-averaged image, every other plane depth, that
+    many virtual frames), upsampled as the start of ``fine_iterations`` full-resolution CG steps.
+    Returns (image, full-resolution CG steps)."""
+    operator = _render_operator if solver == "render" else _table_operator
+    readout = readout if rolling else 0.0  # a concrete 0: the global shutter's one-row program
+    x0 = blurry
+    if coarse_n:
+        small = downsample(blurry)
+        h, w = small.shape
+        coarse = operator(planes[: 2 * h : 2, : 2 * w : 2], camera.scaled(1), traj, coarse_n, readout, rolling)
+        x0 = _upsample(jnp.clip(_solve(*coarse, small, small, lam, iterations, tolerance)[0], 0.0, 1.0), blurry.shape)
+        iterations, tolerance = fine_iterations, 0.0
+    x, steps = _solve(*operator(planes, camera, traj, n, readout, rolling), blurry, x0, lam, iterations, tolerance)
     return jnp.clip(x, 0.0, 1.0), steps
 
 
@@ -245,14 +266,16 @@ def deblur(blurry, depth, camera: PinholeCamera, trajectory: ExposurePath, confi
     exposure path (any reference frame: it is re-expressed about its own mid pose; with a rolling
     shutter of readout fraction ``readout`` the path spans the whole frame time and the image is
     the global-shutter one at its middle). Works in linear radiance (``response_gamma``) and
-    returns display intensities in [0, 1]. ``config.solver`` picks the operator (module docstring)."""
+    returns display intensities in [0, 1]. ``config.solver`` picks the operator (module docstring);
+    ``config.coarse_to_fine`` solves at half resolution first."""
     n = choose_deblur_n(depth, camera, trajectory, config, readout)
     planes = plane_depths_from_keyframe(jnp.asarray(np.asarray(depth, np.float32)), camera, Pose.identity())
-    huge = blurry.shape[0] * blurry.shape[1] >= TABLE_MAX_PIXELS  # the table's flat indices would not be exact
-    solve = _deblur_render if config.solver == "render" or huge else _deblur_table
-    x, _ = solve(jnp.asarray(linearize(blurry, response_gamma)), planes, camera, trajectory.about_middle(),
-                 jnp.float32(config.regularization), jnp.float32(readout), n, config.iterations, readout > 0,
-                 jnp.float32(config.tolerance))
+    huge = blurry.shape[0] * blurry.shape[1] >= TABLE_MAX_PIXELS  # the table's int32 flat indices would overflow
+    coarse = config.coarse_to_fine and min(blurry.shape) >= COARSE_MIN_SIZE
+    x, _ = _deblur(jnp.asarray(linearize(blurry, response_gamma)), planes, camera, trajectory.about_middle(),
+                   jnp.float32(config.regularization), jnp.float32(readout), jnp.float32(config.tolerance),
+                   solver="render" if huge else config.solver, n=n, iterations=config.iterations, rolling=readout > 0,
+                   coarse_n=max(n // 2, 1) if coarse else 0, fine_iterations=config.fine_iterations)
     return delinearize(np.asarray(x), response_gamma)
 
 

@@ -11,12 +11,11 @@ __all__ = ["to_uint16", "from_uint16", "quantize16", "bilinear_cell", "lerp_cell
            "pyramid", "linearize", "delinearize"]
 
 
-def bilinear_cell(image: Float[Array, "H W"], x: Float[Array, "2"], border: float = 0.0):
-    """The pixel cell around x = (col, row) (pixel centres at integers): ``(valid, fu, fv, corners)``
-    with corners = (i00, i01, i10, i11) = image at (v0, u0), (v0, u0+1), (v0+1, u0), (v0+1, u0+1)
-    and (fu, fv) the position inside the cell. Outside ``[border, size-1-border]`` valid is False and
-    the cell is the top-left one (coordinates are replaced before use, so gradients stay finite)."""
-    h, w = image.shape
+def cell_position(x: Float[Array, "2"], h: int, w: int, border: float = 0.0):
+    """The bilinear cell of x = (col, row) in an h x w image (pixel centres at integers): ``(valid,
+    u0, v0, fu, fv)``, the cell's top-left pixel (int32) and the position inside it. Outside
+    ``[border, size-1-border]`` valid is False and the cell is the top-left one (coordinates are
+    replaced before use, so gradients stay finite)."""
     valid = (
         jnp.isfinite(x).all()
         & (x[0] >= border)
@@ -29,9 +28,15 @@ def bilinear_cell(image: Float[Array, "H W"], x: Float[Array, "2"], border: floa
     v = jnp.clip(safe[1], 0.0, h - 1.0)
     fu0 = jnp.clip(jnp.floor(u), 0, w - 2)
     fv0 = jnp.clip(jnp.floor(v), 0, h - 2)
-    u0, v0 = fu0.astype(jnp.int32), fv0.astype(jnp.int32)
+    return valid, fu0.astype(jnp.int32), fv0.astype(jnp.int32), u - fu0, v - fv0
+
+
+def bilinear_cell(image: Float[Array, "H W"], x: Float[Array, "2"], border: float = 0.0):
+    """The pixel cell around x (:func:`cell_position`): ``(valid, fu, fv, corners)`` with corners =
+    (i00, i01, i10, i11) = image at (v0, u0), (v0, u0+1), (v0+1, u0), (v0+1, u0+1)."""
+    valid, u0, v0, fu, fv = cell_position(x, *image.shape, border)
     corners = (image[v0, u0], image[v0, u0 + 1], image[v0 + 1, u0], image[v0 + 1, u0 + 1])
-    return valid, u - fu0, v - fv0, corners
+    return valid, fu, fv, corners
 
 
 def lerp_cell(fu, fv, corners):

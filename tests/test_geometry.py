@@ -27,6 +27,13 @@ def test_pose_compose_inverse_apply(x64, rng):
     np.testing.assert_allclose(Pose.from_vector(a.to_vector()).q, a.q)
 
 
+def test_rotate_is_the_rotation_matrix_times_the_vector(x64, rng):
+    for _ in range(5):
+        q = random_pose(rng, rot=1.0).q
+        v = jnp.asarray(rng.normal(size=3))
+        np.testing.assert_allclose(quat.rotate(q, v), quat.to_matrix(q) @ v, rtol=1e-13, atol=1e-13)
+
+
 def test_interpolation_endpoints_and_midpoint(x64, rng):
     a, b = random_pose(rng), random_pose(rng)
     for s, ref in ((0.0, a), (1.0, b)):

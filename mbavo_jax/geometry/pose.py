@@ -56,7 +56,7 @@ class Pose(eqx.Module):
 
     def apply(self, p: Float[Array, "3"]) -> Float[Array, "3"]:
         """Eq. 1: p_a = R p_b + t."""
-        return self.rotation() @ p + self.t
+        return quat.rotate(self.q, p) + self.t
 
     def compose(self, other: "Pose") -> "Pose":
         """``T_a_b.compose(T_b_c) = T_a_c``."""
@@ -93,10 +93,10 @@ def compiled_on_host(fn):
 
 @compiled_on_host
 def _compose(a: Pose, b: Pose) -> Pose:
-    return Pose(quat.product(a.q, b.q), quat.to_matrix(a.q) @ b.t + a.t)
+    return Pose(quat.product(a.q, b.q), quat.rotate(a.q, b.t) + a.t)
 
 
 @compiled_on_host
 def _inverse(a: Pose) -> Pose:
     q_inv = quat.inverse(a.q)
-    return Pose(q_inv, -(quat.to_matrix(q_inv) @ a.t))
+    return Pose(q_inv, -quat.rotate(q_inv, a.t))

@@ -32,8 +32,8 @@ def plane_point(q: Float[Array, "4"], p: Float[Array, "3"], ray: Float[Array, "3
     valid = (lam > eps) & (d_prime > 0)
     safe_lam = jnp.where(valid, lam, jnp.ones_like(lam))
     length = d_prime / safe_lam  # Eq. 65
-    R = quat.to_matrix(q)
-    p_ref = length * (R[:, 0] * x + R[:, 1] * y + R[:, 2] * z) + p  # Eqs. 66-67: R (length ray) + p, a sum XLA fuses (a matvec is a dot kernel of its own)
+    p3d = length * ray  # Eq. 66
+    p_ref = quat.rotate(q, p3d) + p  # Eq. 67
     return p_ref, lam, valid
 
 

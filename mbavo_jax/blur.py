@@ -34,7 +34,7 @@ from .geometry.transfer import plane_point, plane_transfer
 from .image import bilinear_with_gradient
 
 __all__ = ["virtual_pq", "virtual_pq_table", "virtual_sample", "per_pixel_poses", "synthesize", "blend", "reblur", "render_blurry",
-           "plane_depths_from_keyframe", "blur_lengths", "round_up_pow2"]
+           "plane_depths_from_keyframe", "blur_lengths", "round_up_frames"]
 
 RENDER_CHUNK = 4096  # pixels per chunk of ``render_blurry`` (n x chunk samples live at once)
 
@@ -221,8 +221,12 @@ def blur_lengths(
     return jnp.where(valid, jnp.linalg.norm(xs - xe, axis=1), 0.0), valid
 
 
-def round_up_pow2(need: float, lo: int, hi: int) -> int:
-    """Virtual frames for ``need`` samples: the next power of two at or above max(need, lo), at most
-    ``hi`` (powers of two keep the compiled programs few)."""
+def round_up_frames(need: float, lo: int, hi: int, step: int = 0) -> int:
+    """Virtual frames for ``need`` samples: the next power of two at or above max(need, lo), or,
+    where that power exceeds ``step`` (> 0), the next multiple of ``step``; at most ``hi``. Few
+    distinct values keep the compiled programs few."""
     need = max(lo, math.ceil(max(need, 0.0)))
-    return int(min(hi, 2 ** math.ceil(math.log2(need))))
+    n = 2 ** math.ceil(math.log2(need))
+    if step > 0 and n > step:
+        n = step * math.ceil(need / step)
+    return int(min(hi, n))

@@ -286,9 +286,11 @@ class DeblurConfig(Settings):
 
     section: typing.ClassVar[str] = "deblur"
 
-    n: int = setting(0, "virtual frames of the blur operator; 0: one per pixel of blur (95th percentile), a power of two", NONNEG)
+    n: int = setting(0, "virtual frames of the blur operator; 0: one per pixel of blur (95th percentile), rounded up as n_step says", NONNEG)
     n_min: int = setting(8, "with n = 0: at least this many virtual frames", AT_LEAST_1)
     n_max: int = setting(64, "with n = 0: at most this many virtual frames", AT_LEAST_1)
+    n_step: int = setting(16, "with n = 0: a power of two up to this many virtual frames, a multiple of it above (0: powers of "
+                          "two only)", NONNEG)
     iterations: int = setting(30, "conjugate-gradient iterations, at most", AT_LEAST_1)
     tolerance: float = setting(0.01, "stop CG once the residual of the normal equations is below this fraction of the first "
                                "(0: always all iterations)", Check(lambda v: 0 <= v < 1, "in [0, 1)"))

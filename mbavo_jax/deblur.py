@@ -25,6 +25,7 @@ full-resolution steps (``DeblurConfig.fine_iterations``).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
 
 import equinox as eqx
@@ -33,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, UInt16
 
-from .blur import blur_lengths, plane_depths_from_keyframe, render_blurry, round_up_pow2, virtual_pq, virtual_pq_table, virtual_sample
+from .blur import blur_lengths, plane_depths_from_keyframe, render_blurry, round_up_frames, virtual_pq, virtual_pq_table, virtual_sample
 from .config import DeblurConfig
 from .geometry.camera import PinholeCamera
 from .geometry.pose import Pose
@@ -41,7 +42,7 @@ from .geometry.spline import ExposurePath
 from .geometry.trajectory import row_times
 from .image import cell_position, delinearize, downsample, lerp_cell, linearize
 
-__all__ = ["deblur", "choose_deblur_n", "exposure_blur_px", "psnr", "ssim", "SamplingTable", "sampling_table", "table_blur",
+__all__ = ["deblur", "choose_deblur_n", "exposure_blur_px", "psnr", "ssim", "SamplingTable", "sampling_table", "table_blur", "table_seen",
            "table_blur_adjoint"]
 
 FRACTION_ONE = 65535  # a sample's position inside its bilinear cell is stored as uint16 k / FRACTION_ONE
@@ -69,10 +70,12 @@ _blur_lengths = jax.jit(blur_lengths)
 def choose_deblur_n(depth, camera: PinholeCamera, trajectory: ExposurePath, config: DeblurConfig = DeblurConfig(),
                     readout: float = 0.0) -> int:
     """``config.n`` if positive, else one virtual frame per pixel of the frame's 95th-percentile blur
-    (gaps between virtual frames make the deconvolution ring), a power of two in [n_min, n_max]."""
+    (gaps between virtual frames make the deconvolution ring), in [n_min, n_max]: a power of two,
+    or above ``n_step`` a multiple of it (``blur.round_up_frames``)."""
     if config.n > 0:
         return config.n
-    return round_up_pow2(exposure_blur_px(depth, camera, trajectory, readout=readout)[1], config.n_min, config.n_max)
+    return round_up_frames(exposure_blur_px(depth, camera, trajectory, readout=readout)[1], config.n_min, config.n_max,
+                           config.n_step)
 
 
 def _grad_ops(x):
@@ -177,10 +180,10 @@ def table_blur_adjoint(table: SamplingTable, y: Float[Array, "H W"]) -> Float[Ar
     return total.reshape(h, w)
 
 
-def _cg(op, rhs, x, iterations: int, tolerance=0.0):
-    """Conjugate-gradient steps on op(x) = rhs (op symmetric positive) from x: ``iterations`` of
-    them, fewer once the residual is below ``tolerance`` times the first one. Returns (x, steps)."""
-    r = rhs - op(x)
+def _cg(op, r, x, iterations: int, tolerance=0.0):
+    """Conjugate-gradient steps on op(x) = rhs (op symmetric positive) from x, given the residual
+    r = rhs − op(x) there: ``iterations`` of them, fewer once the residual is below ``tolerance``
+    times the first one. Returns (x, steps)."""
     rs0 = jnp.sum(r * r)
 
     def cond(state):
@@ -201,35 +204,53 @@ def _cg(op, rhs, x, iterations: int, tolerance=0.0):
     return x, i
 
 
-def _solve(blur, adjoint, valid: Bool[Array, "H W"], blurry: Float[Array, "H W"], x0: Float[Array, "H W"], lam,
-           iterations: int, tolerance=0.0):
-    """min ‖A x − b‖² + λ‖∇x‖² over the valid pixels of b (A = ``blur``, linear; Aᵀ = ``adjoint``)
-    by CG on the normal equations from x0 (:func:`_cg`); pixels that no valid pixel sees keep the
-    blurry value. Returns (x, CG steps)."""
-    def normal(x):
-        atax = adjoint(jnp.where(valid, blur(x), 0.0))
-        reg = jax.grad(lambda z: 0.5 * sum(jnp.sum(g * g) for g in _grad_ops(z)))(x)
-        return atax + lam * reg
+class BlurOperator(eqx.Module):
+    """A frame's blur operator for the solve: A (``blur``), Aᵀ (``adjoint``), the pixels whose
+    samples all land in the image (``valid``) and the pixels some valid pixel's samples touch
+    (``seen``: the unknowns; the others keep the blurry value)."""
 
-    rhs = adjoint(jnp.where(valid, blurry, 0.0))
-    seen = adjoint(valid.astype(blurry.dtype)) > 1e-6
-    op = lambda x: jnp.where(seen, normal(x), x)
-    return _cg(op, jnp.where(seen, rhs, blurry), jnp.where(seen, x0, blurry), iterations, tolerance)
+    blur: Callable
+    adjoint: Callable
+    valid: Bool[Array, "H W"]
+    seen: Bool[Array, "H W"]
 
 
-def _render_operator(planes, camera, traj, n: int, readout, rolling: bool):
+def _solve(op: BlurOperator, blurry: Float[Array, "H W"], x0: Float[Array, "H W"], lam, iterations: int, tolerance=0.0):
+    """min ‖A x − b‖² + λ‖∇x‖² over the valid pixels of b by CG on the normal equations from x0
+    (:func:`_cg`), the unseen pixels held at b. Returns (x, CG steps)."""
+    reg = jax.grad(lambda z: 0.5 * sum(jnp.sum(g * g) for g in _grad_ops(z)))
+    normal = lambda x: jnp.where(op.seen, op.adjoint(jnp.where(op.valid, op.blur(x), 0.0)) + lam * reg(x), x)
+    x0 = jnp.where(op.seen, x0, blurry)
+    r0 = op.adjoint(jnp.where(op.valid, blurry - op.blur(x0), 0.0)) - lam * reg(x0)  # Aᵀ(b − A x0) − λ∇ᵀ∇x0: one adjoint
+    return _cg(normal, jnp.where(op.seen, r0, 0.0), x0, iterations, tolerance)
+
+
+def _render_operator(planes, camera, traj, n: int, readout, rolling: bool) -> BlurOperator:
     """The reference form of A (``render_blurry``, every transfer redone at every application), Aᵀ
-    (its ``jax.linear_transpose``) and the valid pixels."""
+    (its ``jax.linear_transpose``); seen: Aᵀ of the valid mask is positive."""
     blur = lambda x: render_blurry(x, planes, camera, traj, n, readout)[0]
     adjoint = lambda y: jax.linear_transpose(blur, planes)(y)[0]
-    return blur, adjoint, render_blurry(jnp.ones_like(planes), planes, camera, traj, n, readout)[1]
+    valid = render_blurry(jnp.ones_like(planes), planes, camera, traj, n, readout)[1]
+    return BlurOperator(blur, adjoint, valid, adjoint(valid.astype(planes.dtype)) > 1e-6)
 
 
-def _table_operator(planes, camera, traj, n: int, readout, rolling: bool):
+def table_seen(table: SamplingTable) -> Bool[Array, "H W"]:
+    """The pixels that are a corner of a bilinear cell some valid pixel's sample falls in (one
+    uint8 scatter-max per virtual frame: a quarter of the time of Aᵀ of the valid mask)."""
+    h, w = table.valid.shape
+    p = h * w
+    mark = table.valid.ravel().astype(jnp.uint8)
+    hit, _ = jax.lax.scan(lambda acc, corner: (acc.at[corner].max(mark, mode="promise_in_bounds"), None),
+                          jnp.zeros(p, jnp.uint8), table.corner)
+    flat = jnp.pad(hit, (w + 1, 0))  # pixel q is corner k of the cells q - (0, 1, w, w + 1)[k]
+    return ((flat[w + 1 :] | flat[w : p + w] | flat[1 : p + 1] | flat[:p]) > 0).reshape(h, w)
+
+
+def _table_operator(planes, camera, traj, n: int, readout, rolling: bool) -> BlurOperator:
     """A and Aᵀ from a :class:`SamplingTable` built once (:func:`table_blur`,
-    :func:`table_blur_adjoint`) and the valid pixels."""
+    :func:`table_blur_adjoint`), the valid pixels and :func:`table_seen`."""
     table = sampling_table(planes, camera, traj, n, readout, rolling)
-    return partial(table_blur, table), partial(table_blur_adjoint, table), table.valid
+    return BlurOperator(partial(table_blur, table), partial(table_blur_adjoint, table), table.valid, table_seen(table))
 
 
 def _upsample(x: Float[Array, "h w"], shape: tuple[int, int]) -> Float[Array, "H W"]:
@@ -254,9 +275,9 @@ def _deblur(blurry, planes, camera, traj, lam, readout, tolerance, *, solver: st
         small = downsample(blurry)
         h, w = small.shape
         coarse = operator(planes[: 2 * h : 2, : 2 * w : 2], camera.scaled(1), traj, coarse_n, readout, rolling)
-        x0 = _upsample(jnp.clip(_solve(*coarse, small, small, lam, iterations, tolerance)[0], 0.0, 1.0), blurry.shape)
+        x0 = _upsample(jnp.clip(_solve(coarse, small, small, lam, iterations, tolerance)[0], 0.0, 1.0), blurry.shape)
         iterations, tolerance = fine_iterations, 0.0
-    x, steps = _solve(*operator(planes, camera, traj, n, readout, rolling), blurry, x0, lam, iterations, tolerance)
+    x, steps = _solve(operator(planes, camera, traj, n, readout, rolling), blurry, x0, lam, iterations, tolerance)
     return jnp.clip(x, 0.0, 1.0), steps
 
 

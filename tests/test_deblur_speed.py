@@ -15,7 +15,7 @@ import pytest
 
 from mbavo_jax.blur import render_blurry
 from mbavo_jax.config import DeblurConfig
-from mbavo_jax.deblur import _cg, deblur, psnr, sampling_table, table_blur, table_blur_adjoint
+from mbavo_jax.deblur import _cg, deblur, psnr, sampling_table, table_blur, table_blur_adjoint, table_seen
 from mbavo_jax.geometry import ExposureTrajectory, PinholeCamera
 from tests.test_rolling_shutter import GT, render, scene
 
@@ -58,6 +58,22 @@ def test_table_adjoint_is_the_transpose(rho, rng):
     assert float(jnp.max(jnp.abs(auto - table_blur_adjoint(table, y)))) < 1e-5
 
 
+@pytest.mark.parametrize("rho", [0.0, 0.6])
+def test_table_seen_marks_the_cell_corners_of_valid_samples(rho):
+    """The solve's unknowns: the four corners of every cell a valid pixel's sample falls in (a
+    brute-force count), which covers every pixel that Aᵀ of the valid mask gives weight to."""
+    table, blurry, _, _ = table_of(rho)
+    h, w = blurry.shape
+    cells = np.asarray(table.corner)[:, np.asarray(table.valid).ravel()].ravel()
+    expect = np.zeros(h * w, bool)
+    for offset in (0, 1, w, w + 1):
+        expect[cells + offset] = True
+    seen = np.asarray(table_seen(table)).ravel()
+    assert np.array_equal(seen, expect) and 0.5 < seen.mean() < 1.0
+    weighted = np.asarray(table_blur_adjoint(table, table.valid.astype(jnp.float32))).ravel() > 1e-6
+    assert not np.any(weighted & ~seen) and np.sum(seen & ~weighted) <= 0.01 * np.sum(seen)
+
+
 def deblurred_psnr(rho: float, **settings) -> tuple[float, float]:
     """(PSNR of the deblurred frame, of the blurry frame) against the sharp image, inside a border."""
     sharp, blurry, depth, cam = frame(rho)
@@ -82,10 +98,10 @@ def test_cg_stops_at_its_tolerance(rng):
     a = jnp.asarray(m @ m.T / 60 + 0.05 * np.eye(60, dtype=np.float32))
     b, x0 = jnp.asarray(rng.normal(size=60).astype(np.float32)), jnp.zeros(60)
     op = lambda x: a @ x
-    x, steps = _cg(op, b, x0, 50, 1e-2)
+    x, steps = _cg(op, b - op(x0), x0, 50, 1e-2)
     assert 0 < int(steps) < 50
     assert float(jnp.linalg.norm(b - op(x))) <= 1e-2 * float(jnp.linalg.norm(b)) * 1.01
-    _, all_steps = _cg(op, b, x0, 50, 0.0)
+    _, all_steps = _cg(op, b - op(x0), x0, 50, 0.0)
     assert int(all_steps) == 50
 
 

@@ -194,7 +194,8 @@ def test_deblurring_improves_psnr_and_ssim(seq_dir):
 
 def test_exposure_blur_px_and_deblur_virtual_frames():
     """A sideways exposure of d metres in front of a wall 2 m away blurs every pixel by fx·d/2 px; the
-    deconvolution uses one virtual frame per pixel of blur, a power of two in [n_min, n_max]."""
+    deconvolution uses one virtual frame per pixel of blur in [n_min, n_max]: a power of two, a
+    multiple of n_step above it."""
     import jax.numpy as jnp
 
     from mbavo_jax.deblur import choose_deblur_n, exposure_blur_px
@@ -211,8 +212,13 @@ def test_exposure_blur_px_and_deblur_virtual_frames():
     mean, p95 = exposure_blur_px(depth, cam, sideways(10.0))
     assert abs(mean - 10.0) < 1e-3 and abs(p95 - 10.0) < 1e-3
     assert exposure_blur_px(np.full_like(depth, np.nan), cam, sideways(10.0)) == (0.0, 0.0)
-    blurs = (0.0, 3.0, 9.0, 15.0, 17.0, 44.0, 300.0)
-    assert [choose_deblur_n(depth, cam, sideways(b)) for b in blurs] == [8, 8, 16, 16, 32, 64, 64]
+    blurs = (0.0, 3.0, 9.0, 15.0, 17.0, 33.0, 44.0, 300.0)
+    pow2 = DeblurConfig(n_step=0)
+    assert [choose_deblur_n(depth, cam, sideways(b), pow2) for b in blurs] == [8, 8, 16, 16, 32, 64, 64, 64]
+    step16 = DeblurConfig(n_step=16)
+    assert [choose_deblur_n(depth, cam, sideways(b), step16) for b in blurs] == [8, 8, 16, 16, 32, 48, 48, 64]
+    step8 = DeblurConfig(n_step=8)
+    assert [choose_deblur_n(depth, cam, sideways(b), step8) for b in blurs] == [8, 8, 16, 16, 24, 40, 48, 64]
     assert choose_deblur_n(depth, cam, sideways(300.0), DeblurConfig(n_max=32)) == 32
     assert choose_deblur_n(depth, cam, sideways(3.0), DeblurConfig(n_min=4)) == 4
     assert choose_deblur_n(depth, cam, sideways(300.0), DeblurConfig(n=5)) == 5  # a fixed n is used as it is

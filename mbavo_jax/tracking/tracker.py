@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..blur import blur_lengths, round_up_pow2
+from ..blur import blur_lengths, round_up_frames
 from ..config import TrackerConfig
 from ..errors import ArgumentError
 from ..geometry.camera import PinholeCamera
@@ -151,7 +151,7 @@ def predicted_blur_px(keyframe: Keyframe, traj: ExposureTrajectory, level: int =
 def choose_n(blur_px: float, config: TrackerConfig) -> int:
     """Adaptive n (supplement §6: n should exceed the blur kernel size): ``n_per_blur_px`` virtual
     frames per pixel of predicted blur, rounded up to a power of two in [n_min, n]."""
-    return round_up_pow2(blur_px * config.n_per_blur_px, config.n_min, config.n)
+    return round_up_frames(blur_px * config.n_per_blur_px, config.n_min, config.n)
 
 
 def _n_for_level(config: TrackerConfig, blur0: float, level: int) -> int:

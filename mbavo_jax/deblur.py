@@ -236,7 +236,7 @@ def _render_operator(planes, camera, traj, n: int, readout, rolling: bool) -> Bl
 
 def table_seen(table: SamplingTable) -> Bool[Array, "H W"]:
     """The pixels that are a corner of a bilinear cell some valid pixel's sample falls in (one
-    uint8 scatter-max per virtual frame: a quarter of the time of Aᵀ of the valid mask)."""
+    uint8 scatter-max per virtual frame, not a float scatter-add as Aᵀ of the valid mask)."""
     h, w = table.valid.shape
     p = h * w
     mark = table.valid.ravel().astype(jnp.uint8)

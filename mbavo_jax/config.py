@@ -353,7 +353,11 @@ class RuntimeConfig(Settings):
     section: typing.ClassVar[str] = "runtime"
 
     compilation_cache: bool = setting(True, "keep compiled programs on disk so that a second run with the same settings compiles nothing")
-    cache_dir: str = setting("", "folder of the compilation cache ('' = $XDG_CACHE_HOME/mbavo_jax/jax, i.e. ~/.cache/mbavo_jax/jax)")
+    cache_dir: str = setting("", "folder of the compilation cache ('' = $XDG_CACHE_HOME/mbavo_jax/jax, i.e. ~/.cache/mbavo_jax/jax); "
+                                 "programs go in a subfolder per JAX version and processor")
+    cache_max_mb: int = setting(2048, "size of the compilation cache: least recently used programs are removed past it; reads and "
+                                      "writes take a file lock, so that processes sharing the cache never read a half-written program",
+                                POSITIVE)
     checkpoint_every: int = setting(1, "monocular runs: write the --resume checkpoint (checkpoint.pkl) after every k-th frame; a resume "
                                     "goes on from the last one, the frames after it tracked again (0: none, no --resume)", NONNEG)
 

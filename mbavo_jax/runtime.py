@@ -2,24 +2,29 @@
 
 With the cache on (``runtime.compilation_cache``, the default), every program XLA compiles is kept in
 a user cache folder, so a second run with the same settings and image size loads its programs
-instead of compiling them. :func:`compile_counts` tells how many programs came from the cache and
+instead of compiling them. The folder has a subfolder per JAX version and processor, and the cache
+has a size limit: with one, JAX locks the folder around every read and write, so that processes
+sharing it (a sweep's workers, a test suite's) never load a half-written program. :func:`compile_counts` tells how many programs came from the cache and
 how many were compiled since the process started.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import pathlib
+import platform
 import resource
 import sys
 
 import jax
+import jaxlib
 from jax import monitoring
 from jax.experimental.compilation_cache import compilation_cache
 
 from .config import RuntimeConfig
 
-__all__ = ["cache_folder", "enable_compilation_cache", "compile_counts", "resident_mb"]
+__all__ = ["cache_folder", "machine_key", "enable_compilation_cache", "compile_counts", "resident_mb"]
 
 _COUNTS = {"programs": 0, "cache_hits": 0, "compile_seconds": 0.0}
 
@@ -39,42 +44,61 @@ monitoring.register_event_listener(_on_event)
 monitoring.register_event_duration_secs_listener(_on_duration)
 
 
+def machine_key() -> str:
+    """The cache's subfolder for this process: jaxlib's version, the machine type and a short hash of
+    the processor's model and instruction-set flags (``/proc/cpuinfo``), so that a cache folder shared
+    by machines (a home folder on a cluster) never hands one machine's programs to another."""
+    try:
+        lines = pathlib.Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        lines = []
+    ident = sorted({ln for ln in lines if ln.startswith(("model name", "flags", "Features", "CPU part"))})
+    ident.append(platform.processor())
+    digest = hashlib.sha256("\n".join(ident).encode()).hexdigest()[:12]
+    return f"jaxlib-{jaxlib.__version__}-{platform.machine()}-{digest}"
+
+
 def cache_folder(config: RuntimeConfig = RuntimeConfig()) -> pathlib.Path:
-    """The compilation cache's folder: ``runtime.cache_dir``, else ``$XDG_CACHE_HOME/mbavo_jax/jax``
-    (``~/.cache/mbavo_jax/jax`` when XDG_CACHE_HOME is not set)."""
+    """The compilation cache's folder: :func:`machine_key` inside ``runtime.cache_dir``, else inside
+    ``$XDG_CACHE_HOME/mbavo_jax/jax`` (``~/.cache/mbavo_jax/jax`` when XDG_CACHE_HOME is not set)."""
     if config.cache_dir:
-        return pathlib.Path(config.cache_dir).expanduser()
-    root = os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache"
-    return pathlib.Path(root) / "mbavo_jax" / "jax"
+        root = pathlib.Path(config.cache_dir).expanduser()
+    else:
+        root = pathlib.Path(os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache") / "mbavo_jax" / "jax"
+    return root / machine_key()
 
 
 def enable_compilation_cache(config: RuntimeConfig = RuntimeConfig()) -> pathlib.Path | None:
     """Turn JAX's persistent compilation cache on in ``cache_folder(config)`` (every program, however
-    quick to compile) or off, for the rest of this process; returns the folder, None when off or
-    when the folder cannot be made (then one note on stderr and the run goes on without it)."""
+    quick to compile; at most ``runtime.cache_max_mb``, with JAX's file lock) or off, for the rest of
+    this process; returns the folder, None when off or when the folder cannot be made (then one note
+    on stderr and the run goes on without it)."""
     if not config.compilation_cache:
-        _set_dir(None)
+        _set_cache(None, -1)
         return None
     folder = cache_folder(config)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         print(f"mbavo: note: no compilation cache ({folder}: {exc.strerror or exc}); compiling as usual", file=sys.stderr)
-        _set_dir(None)
+        _set_cache(None, -1)
         return None
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    _set_dir(str(folder))
+    _set_cache(str(folder), config.cache_max_mb * 2**20)
     return folder
 
 
-def _set_dir(path: str | None) -> None:
-    """Point the cache at ``path`` (None: off); JAX decides once per process whether the cache is
-    used, so a change resets that decision."""
-    if jax.config.jax_compilation_cache_dir == path and jax.config.jax_enable_compilation_cache == (path is not None):
+def _set_cache(path: str | None, max_bytes: int) -> None:
+    """Point the cache at ``path`` (None: off) with a size limit (JAX locks the folder only when the
+    limit is positive); JAX decides once per process whether the cache is used, so a change resets
+    that decision."""
+    now = (jax.config.jax_compilation_cache_dir, jax.config.jax_enable_compilation_cache, jax.config.jax_compilation_cache_max_size)
+    if now == (path, path is not None, max_bytes):
         return
     jax.config.update("jax_enable_compilation_cache", path is not None)
     jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_compilation_cache_max_size", max_bytes)
     compilation_cache.reset_cache()
 
 

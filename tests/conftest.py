@@ -11,6 +11,9 @@ The test session is strict about types (set before anything imports ``mbavo_jax`
   too) at call time; ints pass as floats (PEP 484). ``MBAVO_TYPECHECK=0`` switches the hook off (e.g. to tell a type mismatch from
   a real failure).
 
+The suite's compilation cache is a fresh folder of its own for each run (``MBAVO_TEST_CACHE=user``
+keeps ``~/.cache``).
+
 ``mbavo`` runs in-process (``mbavo_jax.cli.main``) through the ``mbavo`` fixture; only tests that
 need a fresh interpreter (import-time checks, killing a run) start a subprocess.
 """
@@ -35,6 +38,19 @@ if TYPECHECK:
     jaxtyping.install_import_hook("mbavo_jax", TYPECHECKER)
 
 os.environ.setdefault("JAX_NUMPY_DTYPE_PROMOTION", "strict")  # inherited by mbavo subprocesses
+
+# A compilation cache of this run's own (the first process, pytest's controller, makes the folder;
+# xdist workers and mbavo subprocesses inherit it): the suite never loads programs that earlier runs or
+# other tools left in the user's cache folder. MBAVO_TEST_CACHE=user keeps the user's folder.
+if os.environ.get("MBAVO_TEST_CACHE") != "user" and "MBAVO_TEST_XDG_CACHE" not in os.environ:
+    import atexit
+    import shutil
+    import tempfile
+
+    os.environ["MBAVO_TEST_XDG_CACHE"] = tempfile.mkdtemp(prefix="mbavo-test-cache-")
+    atexit.register(shutil.rmtree, os.environ["MBAVO_TEST_XDG_CACHE"], True)
+if "MBAVO_TEST_XDG_CACHE" in os.environ:
+    os.environ["XDG_CACHE_HOME"] = os.environ["MBAVO_TEST_XDG_CACHE"]
 
 import cv2  # noqa: E402
 import jax  # noqa: E402

@@ -3,11 +3,16 @@
 import json
 import subprocess
 import sys
+import textwrap
+import time
 
+import jax
+import jaxlib
 import pytest
+from jax._src.lru_cache import LRUCache
 
 from mbavo_jax.config import RuntimeConfig
-from mbavo_jax.runtime import cache_folder, enable_compilation_cache
+from mbavo_jax.runtime import cache_folder, enable_compilation_cache, machine_key
 
 pytestmark = pytest.mark.slow
 
@@ -51,9 +56,36 @@ def test_cache_off_compiles_and_writes_nothing(tiny, tmp_path):
 
 def test_cache_folder_follows_the_settings_and_xdg(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    assert cache_folder() == tmp_path / "xdg" / "mbavo_jax" / "jax"
-    assert cache_folder(RuntimeConfig(cache_dir=str(tmp_path / "c"))) == tmp_path / "c"
+    key = machine_key()
+    assert key.startswith(f"jaxlib-{jaxlib.__version__}-") and key == machine_key()
+    assert cache_folder() == tmp_path / "xdg" / "mbavo_jax" / "jax" / key
+    assert cache_folder(RuntimeConfig(cache_dir=str(tmp_path / "c"))) == tmp_path / "c" / key
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
     assert enable_compilation_cache(RuntimeConfig(cache_dir=str(blocker / "sub"))) is None  # one note, no crash
     assert enable_compilation_cache(RuntimeConfig(compilation_cache=False)) is None
+
+
+def test_a_process_never_reads_a_program_another_is_still_writing(tmp_path):
+    """JAX writes a cache entry in place; without its file lock (no size limit) a second process reads
+    it half-written. With the settings enable_compilation_cache applies, every read is whole."""
+    folder = enable_compilation_cache(RuntimeConfig(cache_dir=str(tmp_path)))
+    limit = jax.config.jax_compilation_cache_max_size
+    assert limit == RuntimeConfig().cache_max_mb * 2**20
+    size = 64 * 2**20
+    writer = textwrap.dedent(f"""
+        from jax._src.lru_cache import LRUCache
+        LRUCache({str(folder)!r}, max_size={limit}).put("k", b"x" * {size})
+    """)
+    cache = LRUCache(str(folder), max_size=limit)
+    proc = subprocess.Popen([sys.executable, "-c", writer])
+    lengths, start = set(), time.monotonic()
+    while time.monotonic() - start < 120:
+        value = cache.get("k")
+        if value is not None:
+            lengths.add(len(value))
+            if len(value) == size or proc.poll() is not None and len(value) != size:
+                break
+    assert proc.wait(timeout=120) == 0
+    assert lengths == {size}
+    enable_compilation_cache(RuntimeConfig(compilation_cache=False))

@@ -121,8 +121,9 @@ OURS_TRACKING = {
     "n1": dict(blur_aware=False),
     "n64": dict(jacobian="autodiff"),
     "n64_analytic": dict(jacobian="analytic"),
-    "n64_all_levels": dict(jacobian="analytic", n_per_level="same"),
-    "adaptive": dict(jacobian="analytic", n_mode="adaptive"),
+    "n64_tangent": dict(jacobian="tangent"),  # the default
+    "n64_all_levels": dict(jacobian="tangent", n_per_level="same"),
+    "adaptive": dict(jacobian="tangent", n_mode="adaptive"),
 }
 
 
@@ -224,10 +225,10 @@ def _tracking_summary(rows: dict, recompiles: dict) -> dict:
     # fixed n compiles once per level on the first pair; adaptive n once per new (level, n), so later too
     return {
         "methods": table,
-        **{f"{m}_ms": table[m]["median_ms"] for m in ("n1", "n64", "n64_analytic", "adaptive")},
+        **{f"{m}_ms": table[m]["median_ms"] for m in ("n1", "n64", "n64_analytic", "n64_tangent", "adaptive")},
         "open3d_ms": table.get("open3d", {}).get("median_ms"),
         "opencv_ms": table.get("opencv", {}).get("median_ms"),
-        **{f"{m}_endpoint_px": table[m]["endpoint_px"] for m in ("n64", "n64_analytic", "n1", "adaptive")},
+        **{f"{m}_endpoint_px": table[m]["endpoint_px"] for m in ("n64", "n64_analytic", "n64_tangent", "n1", "adaptive")},
         "recompiles_after_first_frame": int(sum(n for m, n in recompiles.items() if m != "adaptive")),
         "adaptive_recompiles_after_first_frame": int(recompiles["adaptive"]),
     }

@@ -143,7 +143,9 @@ class TrackerConfig(Settings):
     n_mode: str = setting("fixed", "fixed | adaptive (n from the predicted blur, per level)", choices=("fixed", "adaptive"))
     n_min: int = setting(2, "adaptive n: at least this many virtual frames", AT_LEAST_1)
     n_per_blur_px: float = setting(2.0, "adaptive n: virtual frames per pixel of predicted blur (power of two, <= n)", POSITIVE)
-    jacobian: str = setting("analytic", "analytic (the supplement's corrected formulas) | autodiff", choices=("analytic", "autodiff"))
+    jacobian: str = setting("tangent", "tangent (each sample's derivative by a local move of its virtual camera, chained through the "
+                                       "supplement's trajectory Jacobian) | analytic (the supplement's corrected formulas) | autodiff",
+                            choices=("tangent", "analytic", "autodiff"))
     trajectory: str = setting("linear", "exposure path: linear (start and end poses, Eqs. 43-44) | cubic (cumulative cubic B-spline, "
                               "four control poses; its pose Jacobian always by autodiff)", choices=("linear", "cubic"))
     huber: float = setting(9.0 / 255.0, "Huber threshold on [0, 1] intensities (9/255)", POSITIVE)

@@ -168,11 +168,11 @@ def _rs_problem(jacobian, rho, dtype):
 
 @pytest.mark.slow
 def test_rolling_shutter_jacobians_match_jacfwd(x64):
-    """Per-row-bucket M_{b,i}, both paths, equal jax.jacfwd of the whole residual in float64, away
+    """Per-row-bucket M_{b,i}, every path, equal jax.jacfwd of the whole residual in float64, away
     from y = 0; the custom JVP is what optimistix linearises."""
     y = jnp.asarray(np.random.default_rng(0).normal(scale=[1e-3] * 12 + [0.05, 0.01]), jnp.float64)
     ref = None
-    for jac in ("autodiff", "analytic"):
+    for jac in ("autodiff", "analytic", "tangent"):
         prob = _rs_problem(jac, RHO, jnp.float64)
         plain = jax.jacfwd(lambda yy: residuals_and_jacobian(yy, prob, False)[0])(y)
         r, J, valid = residuals_and_jacobian(y, prob, True)

@@ -128,10 +128,10 @@ def _spline_problem(jacobian: str, rho: float, dtype):
 @pytest.mark.slow
 @pytest.mark.parametrize("rho", [0.0, RHO])
 def test_spline_jacobians_match_jacfwd(x64, rho):
-    """Both paths (analytic g with the spline's autodiff M; autodiff) equal jax.jacfwd of the whole
+    """Every path (analytic or tangent g with the spline's autodiff M; autodiff) equal jax.jacfwd of the whole
     residual in float64, away from y = 0; the custom JVP is what optimistix linearises."""
     y = jnp.asarray(np.random.default_rng(0).normal(scale=[1e-3] * 24 + [0.05, 0.01]), jnp.float64)
-    for jac in ("autodiff", "analytic"):
+    for jac in ("autodiff", "analytic", "tangent"):
         prob = _spline_problem(jac, rho, jnp.float64)
         plain = jax.jacfwd(lambda yy: residuals_and_jacobian(yy, prob, False)[0])(y)
         r, J, valid = residuals_and_jacobian(y, prob, True)

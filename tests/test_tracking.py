@@ -85,12 +85,12 @@ def _problem(seq, jacobian, n=8, dtype=jnp.float32):
 
 @pytest.mark.slow
 def test_structured_jacobians_match_plain_autodiff(strong):
-    """Both structured paths (per-virtual-pose rows chained through the trajectory Jacobian) equal
+    """Every structured path (per-virtual-pose rows chained through the trajectory Jacobian) equal
     jax.jacfwd of the whole residual, in float64, away from y = 0 too."""
     with jax.enable_x64(True):
         y = jnp.asarray(np.random.default_rng(0).normal(scale=[1e-3] * 12 + [0.05, 0.01]), jnp.float64)
         ref = None
-        for jac in ("autodiff", "analytic"):
+        for jac in ("autodiff", "analytic", "tangent"):
             prob = _problem(strong, jac, dtype=jnp.float64)
             plain = jax.jacfwd(lambda yy: residuals_and_jacobian(yy, prob, False)[0])(y)
             r, J, valid = residuals_and_jacobian(y, prob, True)
@@ -150,14 +150,15 @@ def test_sharp_frames_n64_no_worse_than_n1(sharp_seq):
 
 
 @pytest.mark.slow
-def test_analytic_and_autodiff_paths_give_the_same_track(strong):
+def test_every_jacobian_path_gives_the_same_track(strong):
     out = []
-    for jac in ("analytic", "autodiff"):
+    for jac in ("tangent", "analytic", "autodiff"):
         cfg = dataclasses.replace(SMALL, jacobian=jac)
         kf, frame, init, gt = case(strong, 2, cfg)
         traj, status, _ = track(kf, frame, init, cfg)
         out.append(np.concatenate([np.asarray(traj.start.to_vector()), np.asarray(traj.end.to_vector())]))
     np.testing.assert_allclose(out[0], out[1], atol=2e-4)
+    np.testing.assert_allclose(out[0], out[2], atol=2e-4)
 
 
 @pytest.mark.slow

@@ -186,10 +186,10 @@ def residual_pixels(camera: PinholeCamera, cur_image, pixels, depths, valid, anc
     return rays, jnp.repeat(depths, PATTERN.shape[0]), cur_image[row, col], mask, row
 
 
-def reject_outlier_patches(problem: LevelProblem, y0, k) -> LevelProblem:
-    """Drop the patches whose mean squared residual at y0 exceeds mean + k·std over the patches."""
+def reject_outlier_patches(problem: LevelProblem, r0, v0, k) -> LevelProblem:
+    """Drop the patches whose mean squared residual r0 (at the level's start, valid where v0) exceeds
+    mean + k·std over the patches."""
     npat = PATTERN.shape[0]
-    r0, _, v0 = residuals_and_jacobian(y0, problem, with_jacobian=False)
     vp = v0.reshape(-1, npat)
     cost = masked_mean(r0.reshape(-1, npat) ** 2, vp, axis=1)
     good = vp.sum(1) > npat // 2
@@ -258,15 +258,16 @@ def make_prior(level: LevelInputs, problem: LevelProblem, blur0, sigma_intensity
     return ExposurePrior(blur0, scale, weight)
 
 
-def _summary(problem: LevelProblem, y, y0) -> tuple:
-    """(rms, rms at y0, nrms = rms / contrast of the observed pixels, valid residuals)."""
+def _summary(problem: LevelProblem, y, r0, valid0) -> tuple:
+    """(rms, rms at the start (residuals r0, valid0), nrms = rms / contrast of the observed pixels,
+    valid residuals); residuals outside the problem's mask do not count."""
     r, _, valid = residuals_and_jacobian(y, problem, with_jacobian=False)
     nvalid = valid.sum()
     rms = jnp.sqrt(jnp.sum(r * r) / count(valid, r.dtype))
     obs_mean = masked_mean(problem.observed, valid)
     obs_std = jnp.sqrt(masked_mean((problem.observed - obs_mean) ** 2, valid))
-    r0, _, valid0 = residuals_and_jacobian(y0, problem, with_jacobian=False)
-    rms0 = jnp.sqrt(jnp.sum(r0**2) / count(valid0, r0.dtype))
+    valid0 = valid0 & problem.mask
+    rms0 = jnp.sqrt(jnp.sum(jnp.where(valid0, r0, 0.0) ** 2) / count(valid0, r0.dtype))
     return rms, rms0, rms / jnp.maximum(obs_std, 1e-6), nvalid
 
 
@@ -281,8 +282,9 @@ def solve_level(level: LevelInputs, settings: LevelSettings, prior: tuple | None
                            times, rows if settings.rolling else None)
     param = Parametrization(level.affine_ab, settings.rigid, settings.affine, level.anchor.dof)
     z0 = jnp.zeros(param.size(), level.ref_image.dtype)
+    r0, _, valid0 = residuals_and_jacobian(param.expand(z0), problem, with_jacobian=False)
     if settings.use_outliers:
-        problem = reject_outlier_patches(problem, param.expand(z0), settings.outlier_sigma)
+        problem = reject_outlier_patches(problem, r0, valid0, settings.outlier_sigma)
     prior_term = None if prior is None else make_prior(level, problem, *prior)
     curvature = None
     if prior is not None and isinstance(level.anchor, SplineTrajectory) and settings.curved:
@@ -291,7 +293,7 @@ def solve_level(level: LevelInputs, settings: LevelSettings, prior: tuple | None
     solver = optx.LevenbergMarquardt(rtol=settings.rtol, atol=settings.atol, norm=optx.rms_norm, linear_solver=lx.QR() if curvature is not None else LINEAR_SOLVER)
     sol = optx.least_squares(objective, solver, z0, args=obj, max_steps=settings.max_steps, throw=False)
     y = param.expand(sol.value)
-    rms, rms0, nrms, nvalid = _summary(problem, y, param.expand(z0))
+    rms, rms0, nrms, nvalid = _summary(problem, y, r0, valid0)
     k = param.dof
     traj = level.anchor.plus(y[:k]).normalized()
     converged = sol.result == optx.RESULTS.successful

@@ -23,7 +23,7 @@ __all__ = ["MemoryEstimate", "tracking_samples", "deblurring_samples", "estimate
 
 GIB = 2**30
 BASE_BYTES = 1.5e9  # JAX runtime, the compiled level and deblurring programs, the sequence's images
-SOLVE_BYTES = {"analytic": 320, "autodiff": 640}  # per (virtual frame x residual) of a level's solve
+SOLVE_BYTES = {"tangent": 320, "analytic": 320, "autodiff": 640}  # per (virtual frame x residual) of a level's solve
 DEBLUR_BYTES = 64  # per (virtual frame x pixel) of the deblurring program
 
 

@@ -11,10 +11,13 @@ The 12 trajectory unknowns enter only through the n virtual poses, so the Jacobi
 
 where M_i is shared by all pixels under a global shutter. With a rolling shutter the virtual poses
 are a table over row buckets b (one per image row) and M becomes M_{b,i} = ∂(p, q̄)_{b,i}/∂y, with
-∂r/∂y = e^a / n · Σ_i g_i(x) · M_{b(x),i}. Two paths compute g_i and M_i: ``autodiff`` (``jax.jacfwd`` of the
-per-sample function and of the trajectory) and ``analytic`` (the supplement's corrected formulas:
-Eqs. 85, 78-84, 56-58, 48-49, 3-11). The residual function carries a ``custom_jvp`` that returns
-J @ ẏ, so ``jax.linearize`` inside optimistix computes J once per step.
+∂r/∂y = e^a / n · Σ_i g_i(x) · M_{b(x),i}. Three paths compute g_i and M_i: ``autodiff`` (``jax.jacfwd`` of the
+per-sample function and of the trajectory), ``analytic`` (the supplement's corrected formulas:
+Eqs. 85, 78-84, 56-58, 48-49, 3-11) and ``tangent`` (the default): g_i by a local perturbation
+(t, ω) of each virtual camera, 6 numbers per sample from the plane point alone
+(:func:`_sample_tangent`), and M_i the analytic one mapped to (t, ω) once per virtual pose
+(:func:`tangent_rows`). The residual function carries a ``custom_jvp`` that returns J @ ẏ, so
+``jax.linearize`` inside optimistix computes J once per step.
 
 A cubic exposure path (``geometry.spline.SplineTrajectory``) has k = 24 unknowns instead of 12
 (y = [Δ (k), a, b]); its M has no closed form here and is always ``jax.jacfwd`` of the pose table,
@@ -49,7 +52,7 @@ class LevelProblem(eqx.Module):
     observed: Float[Array, "R"]  # B(x), the blurry frame at the residual pixels
     mask: Bool[Array, "R"]
     n: int = eqx.field(static=True)
-    jacobian: str = eqx.field(static=True)  # "autodiff" | "analytic"
+    jacobian: str = eqx.field(static=True)  # "tangent" | "analytic" | "autodiff"
     times: Float[Array, "B n"] | None = None  # rolling shutter: s(v, i) per row bucket (None: global shutter)
     rows: Int[Array, "R"] | None = None  # the row bucket of each residual pixel (with ``times``)
 
@@ -95,7 +98,7 @@ def _M_analytic(problem: LevelProblem, y12):
     return jax.vmap(jax.vmap(one))(_times(problem, y12.dtype))
 
 
-def chain_rows(G: Float[Array, "n R 7"], M: Float[Array, "B n 7 k"], rows: Int[Array, " R"]) -> Float[Array, "R k"]:
+def chain_rows(G: Float[Array, "n R j"], M: Float[Array, "B n j k"], rows: Int[Array, " R"]) -> Float[Array, "R k"]:
     """Σ_i g_i(x) · M_{b(x),i} for every residual x (one bucket: a single contraction)."""
     if M.shape[0] == 1:
         return jnp.einsum("nrj,njk->rk", G, M[0])
@@ -121,10 +124,38 @@ def _sample_analytic(problem: LevelProblem, pq, ray, d):
     return value, jnp.where(ok, w @ dp, 0.0), ok
 
 
-def _jacobian(problem: LevelProblem, yk, G: Float[Array, "n R 7"], rows, gain) -> Float[Array, "R k"]:
-    """∂r/∂y_k = e^a / n · Σ_i g_i · M_{b,i} (M analytic for a straight path with the analytic path)."""
-    analytic = problem.jacobian == "analytic" and isinstance(problem.anchor, ExposureTrajectory)
+def _sample_tangent(problem: LevelProblem, pq, ray, d):
+    """(v_i, g_i = ∂v_i/∂(t, ω) (6,), valid): the sample's derivative by a translation t and a left
+    rotation exp(ω) R_i of the virtual camera. With w = ∇I · Eq. 85 and e = p'_3d − t_i (the ray to
+    the plane, e_z = d − t_z), ∂p'/∂t = P = I − e e_zᵀ / e_z and ∂p'/∂ω = −P [e]×, so
+    g_i = [a, e × a] with a = Pᵀ w (the 3 x 7 matrix of Eqs. 78-84 is never formed)."""
+    value, grad, p_ref, ok = _sample(problem, pq, ray, d)
+    dproj = pj.projection_jacobian(problem.camera.fx, problem.camera.fy, p_ref)  # 2 x 3
+    w = grad[0] * dproj[0] + grad[1] * dproj[1]
+    e = p_ref - pq[:3]
+    a = w.at[2].add(-jnp.dot(e, w) / jnp.where(ok, e[2], 1.0))
+    return value, jnp.where(ok, jnp.concatenate([a, jnp.cross(e, a)]), 0.0), ok
+
+
+def tangent_rows(M: Float[Array, "B n 7 k"], pqs: Float[Array, "B n 7"]) -> Float[Array, "B n 6 k"]:
+    """∂(t, ω)_{b,i}/∂y from ∂(p, q̄)_{b,i}/∂y: ω = 2 vec(δq̄ ⊗ q̄⁻¹) (Eqs. 38, 40) for the unit q̄_i."""
+    def one(m, pq):
+        dw = 2 * quat.Q_hat(quat.inverse(pq[3:]))[:3]  # 3 x 4
+        return jnp.concatenate([m[:3], dw @ m[3:]], axis=0)
+
+    return jax.vmap(jax.vmap(one))(M, pqs)
+
+
+SAMPLERS = {"tangent": _sample_tangent, "analytic": _sample_analytic, "autodiff": _sample_autodiff}
+
+
+def _jacobian(problem: LevelProblem, yk, pqs, G: Float[Array, "n R j"], rows, gain) -> Float[Array, "R k"]:
+    """∂r/∂y_k = e^a / n · Σ_i g_i · M_{b,i} (M analytic for a straight path unless the path is
+    ``autodiff``; in (t, ω) for ``tangent``)."""
+    analytic = problem.jacobian != "autodiff" and isinstance(problem.anchor, ExposureTrajectory)
     M = _M_analytic(problem, yk) if analytic else _M_autodiff(problem, yk)
+    if problem.jacobian == "tangent":
+        M = tangent_rows(M, pqs)
     return (gain / problem.n) * chain_rows(G, M, rows)
 
 
@@ -142,14 +173,14 @@ def residuals_and_jacobian(y: Float[Array, " Y"], problem: LevelProblem, with_ja
     if not with_jacobian:
         synth, ok = synthesize(problem.ref_image, problem.camera, pqs, problem.rays, problem.depths, rows)
     else:
-        sample = _sample_analytic if problem.jacobian == "analytic" else _sample_autodiff
+        sample = SAMPLERS[problem.jacobian]
         values, G, oks = per_pixel_poses(lambda pq, ray, d: sample(problem, pq, ray, d), pqs, rows, problem.rays, problem.depths)
         synth, ok = blend(values, oks)  # values, oks, G: (n, R, ...)
     valid = problem.mask & ok
     r = jnp.where(valid, gain * synth + b - problem.observed, 0.0)
     if not with_jacobian:
         return r, None, valid
-    J = jnp.concatenate([_jacobian(problem, yk, G, rows, gain), (gain * synth)[:, None], jnp.ones_like(synth)[:, None]], axis=1)
+    J = jnp.concatenate([_jacobian(problem, yk, pqs, G, rows, gain), (gain * synth)[:, None], jnp.ones_like(synth)[:, None]], axis=1)
     return r, jnp.where(valid[:, None], J, 0.0), valid
 
 

@@ -548,13 +548,26 @@ def format_odometry_table(res: dict) -> str:
     return "\n".join(lines)
 
 
+def real_clip(value: str) -> pathlib.Path:
+    """The real clip a ``--tum`` / ``--kitti`` value names: the path as given when it exists, else the
+    folder of that name in the shared data folder (``synthetic.scene.default_shared_data``), so that
+    the defaults (``../shared/data/...``) work from any working folder."""
+    from .synthetic.scene import default_shared_data
+
+    path = pathlib.Path(value).expanduser()
+    shared = default_shared_data()
+    if path.exists() or shared is None or not (shared / path.name).is_dir():
+        return path  # missing: the loader says so in one line
+    return shared / path.name
+
+
 def tum_blurred(cfg: BenchConfig, quiet: bool = False) -> pathlib.Path:
     """``runs/bench_tum_blurred``: the TUM clip ``cfg.tum`` blurred by ``mbavo synth --from`` (20 px), made once."""
     from .synthetic import blur_real_sequence
 
     out = pathlib.Path("runs") / "bench_tum_blurred"
     if not (out / "exposure.txt").is_file():
-        blur_real_sequence(open_sequence(cfg.tum), out, blur_px=20.0, progress=not quiet)
+        blur_real_sequence(open_sequence(real_clip(cfg.tum)), out, blur_px=20.0, progress=not quiet)
     return out
 
 

@@ -134,14 +134,14 @@ def format_mono_table(results: dict) -> str:
 def main_mono(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
     """``mbavo bench mono``: the presets of ``cfg.presets`` (exposure hidden, depth not read by the
     mono methods), KITTI 07 and the TUM clip sharp and blurred."""
-    from .bench import bench_data, with_hidden_exposure, tum_blurred
+    from .bench import bench_data, real_clip, with_hidden_exposure, tum_blurred
 
     seqs = {p: bench_data(p, cfg, cfg.frames, quiet, exact=True) for p in cfg.presets.split(",") if p}
     seqs = {k: v for k, v in with_hidden_exposure(seqs, "all").items() if k.endswith("_noexp")}
     if cfg.kitti:
-        seqs["kitti07"] = pathlib.Path(cfg.kitti)
+        seqs["kitti07"] = real_clip(cfg.kitti)
     if cfg.tum:
-        seqs["tum_xyz"] = pathlib.Path(cfg.tum)
+        seqs["tum_xyz"] = real_clip(cfg.tum)
         seqs["tum_xyz_blurred"] = tum_blurred(cfg, quiet)
     methods = [m for m in cfg.methods.split(",") if m] or MONO_METHODS
     root = pathlib.Path(cfg.out if cfg.out != BenchConfig().out else "runs/bench_mono")

@@ -443,8 +443,9 @@ class BenchConfig(Settings):
     preset: str = setting("strong,none", "tracking: comma-separated blur presets to generate and run")
     presets: str = setting("none,mild,strong,extreme", "odometry: blur presets")
     sensor_presets: str = setting("strong,extreme", "odometry: presets generated again with Kinect-class depth ('' to skip)")
-    tum: str = setting("../shared/data/tum_fr1_xyz_head37", "odometry, mono: real RGB-D clip to blur ('' to skip)")
-    kitti: str = setting("../shared/data/kitti07_head160", "mono: real monocular clip ('' to skip)")
+    tum: str = setting("../shared/data/tum_fr1_xyz_head37", "odometry, mono: real RGB-D clip to blur ('' to skip; a path that is not "
+                                                               "there is looked up by its name in the shared data folder)")
+    kitti: str = setting("../shared/data/kitti07_head160", "mono: real monocular clip ('' to skip; looked up like --tum)")
     width: int = setting(640, "image width of generated sequences", at_least(16))
     height: int = setting(480, "image height of generated sequences", at_least(16))
     seed: int = setting(0, "seed of generated sequences", NONNEG)

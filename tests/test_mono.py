@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import json
+import pathlib
 import shutil
 
 import cv2
@@ -15,7 +16,7 @@ import numpy as np
 import pytest
 
 from mbavo_jax.bench_mono import trajectory_scores
-from mbavo_jax.config import EvalConfig, RunConfig
+from mbavo_jax.config import BenchConfig, EvalConfig, RunConfig
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.geometry import ExposureTrajectory, PinholeCamera, Pose
 from mbavo_jax.io import read_ply, read_tum_trajectory
@@ -208,3 +209,22 @@ def test_exposure_pairs_use_the_window_points_depth_at_the_tracked_pose():
     depth = recent[-1].depth
     assert np.isfinite(depth).sum() == 3
     assert np.allclose(depth[[30, 60, 90], [40, 80, 120]], [2.0, 4.0, 1.0])
+
+
+def test_the_bench_defaults_find_the_real_clips_from_any_folder(tmp_path, monkeypatch):
+    """``--tum`` / ``--kitti`` default to ``../shared/data/...``: from a folder without that path the
+    clip is looked up by name in the shared data folder; a path that exists is kept; an unknown one
+    comes back unchanged (the loader then says it is missing)."""
+    from mbavo_jax.bench import real_clip
+
+    from .conftest import shared_dataset
+
+    kitti = shared_dataset("kitti07_head160")
+    monkeypatch.setenv("MBAVO_SHARED_DATA", str(kitti.parent))
+    monkeypatch.chdir(tmp_path)
+    for value in (BenchConfig().kitti, BenchConfig().tum):
+        found = real_clip(value)
+        assert found.is_dir() and found.name == pathlib.Path(value).name and found.parent == kitti.parent
+    (tmp_path / "mine").mkdir()
+    assert real_clip("mine") == pathlib.Path("mine")
+    assert real_clip("../nowhere/clip") == pathlib.Path("../nowhere/clip")

@@ -356,7 +356,7 @@ class RuntimeConfig(Settings):
 
     compilation_cache: bool = setting(True, "keep compiled programs on disk so that a second run with the same settings compiles nothing")
     cache_dir: str = setting("", "folder of the compilation cache ('' = $XDG_CACHE_HOME/mbavo_jax/jax, i.e. ~/.cache/mbavo_jax/jax); "
-                                 "programs go in a subfolder per JAX version and processor")
+                                 "programs go in a subfolder per jaxlib version and processor")
     cache_max_mb: int = setting(2048, "size of the compilation cache: least recently used programs are removed past it; reads and "
                                       "writes take a file lock, so that processes sharing the cache never read a half-written program",
                                 POSITIVE)

@@ -220,6 +220,7 @@ def test_the_bench_defaults_find_the_real_clips_from_any_folder(tmp_path, monkey
     from .conftest import shared_dataset
 
     kitti = shared_dataset("kitti07_head160")
+    shared_dataset("tum_fr1_xyz_head37")
     monkeypatch.setenv("MBAVO_SHARED_DATA", str(kitti.parent))
     monkeypatch.chdir(tmp_path)
     for value in (BenchConfig().kitti, BenchConfig().tum):

@@ -70,6 +70,13 @@ def test_a_process_never_reads_a_program_another_is_still_writing(tmp_path):
     """JAX writes a cache entry in place; without its file lock (no size limit) a second process reads
     it half-written. With the settings enable_compilation_cache applies, every read is whole."""
     folder = enable_compilation_cache(RuntimeConfig(cache_dir=str(tmp_path)))
+    try:
+        _read_while_another_process_writes(folder)
+    finally:
+        enable_compilation_cache(RuntimeConfig(compilation_cache=False))
+
+
+def _read_while_another_process_writes(folder) -> None:
     limit = jax.config.jax_compilation_cache_max_size
     assert limit == RuntimeConfig().cache_max_mb * 2**20
     size = 64 * 2**20
@@ -88,4 +95,3 @@ def test_a_process_never_reads_a_program_another_is_still_writing(tmp_path):
                 break
     assert proc.wait(timeout=120) == 0
     assert lengths == {size}
-    enable_compilation_cache(RuntimeConfig(compilation_cache=False))

@@ -186,7 +186,7 @@ def residual_pixels(camera: PinholeCamera, cur_image, pixels, depths, valid, anc
     return rays, jnp.repeat(depths, PATTERN.shape[0]), cur_image[row, col], mask, row
 
 
-def reject_outlier_patches(problem: LevelProblem, r0, v0, k) -> LevelProblem:
+def reject_outlier_patches(problem: LevelProblem, r0: Float[Array, " R"], v0: Bool[Array, " R"], k) -> LevelProblem:
     """Drop the patches whose mean squared residual r0 (at the level's start, valid where v0) exceeds
     mean + k·std over the patches."""
     npat = PATTERN.shape[0]
@@ -258,7 +258,7 @@ def make_prior(level: LevelInputs, problem: LevelProblem, blur0, sigma_intensity
     return ExposurePrior(blur0, scale, weight)
 
 
-def _summary(problem: LevelProblem, y, r0, valid0) -> tuple:
+def _summary(problem: LevelProblem, y, r0: Float[Array, " R"], valid0: Bool[Array, " R"]) -> tuple:
     """(rms, rms at the start (residuals r0, valid0), nrms = rms / contrast of the observed pixels,
     valid residuals); residuals outside the problem's mask do not count."""
     r, _, valid = residuals_and_jacobian(y, problem, with_jacobian=False)

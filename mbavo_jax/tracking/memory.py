@@ -104,7 +104,7 @@ def check_memory(config: RunConfig, height: int, width: int, available: tuple[fl
     t = config.tracker
     if est.tracking >= est.deblurring:
         settings = f"tracker.n={t.n}, tracker.points={list(t.points)}"
-        fix = "lower tracker.n or tracker.points" + (" (or use tracker.jacobian=analytic)" if t.jacobian == "autodiff" else "")
+        fix = "lower tracker.n or tracker.points" + (" (or use tracker.jacobian=tangent)" if t.jacobian == "autodiff" else "")
     else:
         settings = f"deblur.n={config.deblur.n}, deblur.n_max={config.deblur.n_max}"
         fix = "lower deblur.n_max (or deblur.n), or set odometry.deblur_min_blur_px=.inf to skip deblurring"

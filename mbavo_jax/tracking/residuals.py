@@ -149,7 +149,7 @@ def tangent_rows(M: Float[Array, "B n 7 k"], pqs: Float[Array, "B n 7"]) -> Floa
 SAMPLERS = {"tangent": _sample_tangent, "analytic": _sample_analytic, "autodiff": _sample_autodiff}
 
 
-def _jacobian(problem: LevelProblem, yk, pqs, G: Float[Array, "n R j"], rows, gain) -> Float[Array, "R k"]:
+def _jacobian(problem: LevelProblem, yk, pqs: Float[Array, "B n 7"], G: Float[Array, "n R j"], rows, gain) -> Float[Array, "R k"]:
     """∂r/∂y_k = e^a / n · Σ_i g_i · M_{b,i} (M analytic for a straight path unless the path is
     ``autodiff``; in (t, ω) for ``tangent``)."""
     analytic = problem.jacobian != "autodiff" and isinstance(problem.anchor, ExposureTrajectory)

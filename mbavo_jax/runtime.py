@@ -4,8 +4,9 @@ With the cache on (``runtime.compilation_cache``, the default), every program XL
 a user cache folder, so a second run with the same settings and image size loads its programs
 instead of compiling them. The folder has a subfolder per jaxlib version and processor, and the
 cache has a size limit: with one, JAX locks the folder around every read and write, so that
-processes sharing it (a sweep's workers, a test suite's) never load a half-written program. :func:`compile_counts` tells how many programs came from the cache and
-how many were compiled since the process started.
+processes sharing it (a sweep's workers, a test suite's) never load a half-written program.
+:func:`compile_counts` tells how many programs came from the cache and how many were compiled since
+the process started.
 """
 
 from __future__ import annotations
@@ -91,8 +92,8 @@ def enable_compilation_cache(config: RuntimeConfig = RuntimeConfig()) -> pathlib
 
 def _set_cache(path: str | None, max_bytes: int) -> None:
     """Point the cache at ``path`` (None: off) with a size limit in bytes (JAX locks the folder only
-    when a limit is set, i.e. not -1); JAX decides once per process whether the cache is used, so a change resets
-    that decision."""
+    when a limit is set, i.e. not -1); JAX decides once per process whether the cache is used, so a
+    change resets that decision."""
     now = (jax.config.jax_compilation_cache_dir, jax.config.jax_enable_compilation_cache, jax.config.jax_compilation_cache_max_size)
     if now == (path, path is not None, max_bytes):
         return

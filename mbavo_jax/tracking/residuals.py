@@ -115,12 +115,18 @@ def _sample_autodiff(problem: LevelProblem, pq, ray, d):
     return value, g, ok
 
 
-def _sample_analytic(problem: LevelProblem, pq, ray, d):
-    """(v_i, g_i = ∇I · Eq. 85 · Eqs. 78-84 (corrected) (7,), valid) from one bilinear sample."""
+def _sample_with_point_gradient(problem: LevelProblem, pq, ray, d):
+    """(v_i, w = ∂v_i/∂p'_3d = ∇I · Eq. 85 (3,), p'_3d, valid) from one bilinear sample (w written
+    elementwise, which fuses under vmap)."""
     value, grad, p_ref, ok = _sample(problem, pq, ray, d)
     dproj = pj.projection_jacobian(problem.camera.fx, problem.camera.fy, p_ref)  # 2 x 3
+    return value, grad[0] * dproj[0] + grad[1] * dproj[1], p_ref, ok
+
+
+def _sample_analytic(problem: LevelProblem, pq, ray, d):
+    """(v_i, g_i = ∇I · Eq. 85 · Eqs. 78-84 (corrected) (7,), valid) from one bilinear sample."""
+    value, w, _, ok = _sample_with_point_gradient(problem, pq, ray, d)
     dp = pj.transfer_jacobian_corrected(pq[3:], pq[:3], ray, d)  # 3 x 7
-    w = grad[0] * dproj[0] + grad[1] * dproj[1]  # ∇I · Eq. 85 (3,), elementwise: fuses under vmap
     return value, jnp.where(ok, w @ dp, 0.0), ok
 
 
@@ -129,9 +135,7 @@ def _sample_tangent(problem: LevelProblem, pq, ray, d):
     rotation exp(ω) R_i of the virtual camera. With w = ∇I · Eq. 85 and e = p'_3d − t_i (the ray to
     the plane, e_z = d − t_z), ∂p'/∂t = P = I − e e_zᵀ / e_z and ∂p'/∂ω = −P [e]×, so
     g_i = [a, e × a] with a = Pᵀ w (the 3 x 7 matrix of Eqs. 78-84 is never formed)."""
-    value, grad, p_ref, ok = _sample(problem, pq, ray, d)
-    dproj = pj.projection_jacobian(problem.camera.fx, problem.camera.fy, p_ref)  # 2 x 3
-    w = grad[0] * dproj[0] + grad[1] * dproj[1]
+    value, w, p_ref, ok = _sample_with_point_gradient(problem, pq, ray, d)
     e = p_ref - pq[:3]
     a = w.at[2].add(-jnp.dot(e, w) / jnp.where(ok, e[2], 1.0))
     return value, jnp.where(ok, jnp.concatenate([a, jnp.cross(e, a)]), 0.0), ok

@@ -87,25 +87,27 @@ def run_method(seq, run: pathlib.Path, config: RunConfig, progress: bool) -> dic
 
 def run_mono_benchmark(sequences: dict, out_root, methods=MONO_METHODS, progress: bool = True,
                        tracker_overrides: dict | None = None) -> dict:
-    """Each of ``methods`` on each sequence (name -> folder); ``rgbd_*`` only where there is depth."""
+    """Each of ``methods`` on each sequence (name -> folder); ``rgbd_*`` only where there is depth.
+    ``out_root/results.json`` holds every finished run's scores as soon as it finishes."""
     unknown = [m for m in methods if m not in MONO_METHODS]
     if unknown:
         raise MbavoError(f"unknown method {', '.join(unknown)} (choose from {', '.join(MONO_METHODS)})")
-    results = {}
+    results, root = {}, pathlib.Path(out_root)
+    root.mkdir(parents=True, exist_ok=True)
     for name, path in sequences.items():
         seq = open_sequence(path)
         base = TrackerConfig(**{**(tracker_overrides or {}), **calibration_of(seq.meta)})
-        row = {}
+        row = results[name] = {}
         for method, config in mono_configs(base, methods).items():
             if method.startswith("rgbd") and not seq.has_depth:
                 continue
             if progress:
                 print(f"{name}: {method}", file=sys.stderr)
             try:
-                row[method] = run_method(seq, pathlib.Path(out_root) / name / method, config, progress)
+                row[method] = run_method(seq, root / name / method, config, progress)
             except MbavoError as exc:
                 row[method] = {"error": str(exc)}
-        results[name] = row
+            (root / "results.json").write_text(json.dumps(results, indent=2))
     return results
 
 
@@ -147,5 +149,4 @@ def main_mono(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
     root = pathlib.Path(cfg.out if cfg.out != BenchConfig().out else "runs/bench_mono")
     results = run_mono_benchmark(seqs, root, methods, progress=not quiet)
     print(json.dumps(results, indent=2) if fmt == "json" else format_mono_table(results))
-    (root / "results.json").write_text(json.dumps(results, indent=2))
     return 0

@@ -349,8 +349,8 @@ class MonoConfig(Settings):
 
 @dataclasses.dataclass(frozen=True)
 class RuntimeConfig(Settings):
-    """How the process runs: JAX's persistent compilation cache (``mbavo_jax.runtime``), and how often a
-    monocular run leaves the checkpoint that --resume continues from."""
+    """How the process runs: JAX's persistent compilation cache and the compiled programs it holds
+    (``mbavo_jax.runtime``), and how often a monocular run leaves the checkpoint that --resume continues from."""
 
     section: typing.ClassVar[str] = "runtime"
 
@@ -360,6 +360,9 @@ class RuntimeConfig(Settings):
     cache_max_mb: int = setting(2048, "size of the compilation cache: least recently used programs are removed past it; reads and "
                                       "writes take a file lock, so that processes sharing the cache never read a half-written program",
                                 POSITIVE)
+    release_programs_at: float = setting(0.5, "a run first releases the compiled programs this process holds (they come back from the "
+                                         "compilation cache) when their memory maps pass this fraction of the system's limit "
+                                         "(vm.max_map_count): past it XLA cannot load another program and the process dies", FRACTION)
     checkpoint_every: int = setting(1, "monocular runs: write the --resume checkpoint (checkpoint.pkl) after every k-th frame; a resume "
                                     "goes on from the last one, the frames after it tracked again (0: none, no --resume)", NONNEG)
 

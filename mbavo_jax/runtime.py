@@ -6,11 +6,13 @@ instead of compiling them. The folder has a subfolder per jaxlib version and pro
 cache has a size limit: with one, JAX locks the folder around every read and write, so that
 processes sharing it (a sweep's workers, a test suite's) never load a half-written program.
 :func:`compile_counts` tells how many programs came from the cache and how many were compiled since
-the process started.
+the process started. :func:`make_room_for_programs` releases the programs a process holds before a
+run when their memory maps near the system's limit (a benchmark of many settings and image sizes).
 """
 
 from __future__ import annotations
 
+import gc
 import hashlib
 import os
 import pathlib
@@ -25,7 +27,8 @@ from jax.experimental.compilation_cache import compilation_cache
 
 from .config import RuntimeConfig
 
-__all__ = ["cache_folder", "machine_key", "enable_compilation_cache", "compile_counts", "resident_mb"]
+__all__ = ["cache_folder", "machine_key", "enable_compilation_cache", "compile_counts", "resident_mb", "memory_maps",
+           "make_room_for_programs"]
 
 _COUNTS = {"programs": 0, "cache_hits": 0, "compile_seconds": 0.0}
 
@@ -118,3 +121,32 @@ def resident_mb() -> float:
     except (OSError, ValueError, IndexError):
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
         return peak / (2**20 if sys.platform == "darwin" else 2**10)
+
+
+def memory_maps() -> tuple[int, int] | None:
+    """(memory maps this process holds, the most the system allows it: ``vm.max_map_count``) from
+    Linux's /proc; None elsewhere."""
+    try:
+        with open("/proc/self/maps", "rb") as fh:
+            held = sum(1 for _ in fh)
+        return held, int(pathlib.Path("/proc/sys/vm/max_map_count").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def make_room_for_programs(config: RuntimeConfig = RuntimeConfig(), quiet: bool = False) -> bool:
+    """Release every compiled program this process holds (``jax.clear_caches``) when its memory maps
+    are past ``runtime.release_programs_at`` of the system's limit, with one note on stderr; returns
+    whether it did. XLA maps each program's code apart (a monocular run at one image size holds about
+    10,000 maps), and a process past the limit dies in LLVM ("Cannot allocate memory"). Released
+    programs come back from the compilation cache when used again."""
+    maps = memory_maps()
+    if maps is None or maps[0] <= config.release_programs_at * maps[1]:
+        return False
+    jax.clear_caches()
+    gc.collect()  # the executables are freed, and their maps unmapped, with their last reference
+    after = memory_maps() or (0, maps[1])
+    if not quiet:
+        print(f"mbavo: note: released the compiled programs of earlier runs ({maps[0]} of the system's {maps[1]} memory maps held, "
+              f"{after[0]} now); they load from the compilation cache, or compile again, when needed", file=sys.stderr)
+    return True

@@ -1,6 +1,7 @@
 """The persistent compilation cache: a second run with the same settings compiles nothing."""
 
 import json
+import re
 import subprocess
 import sys
 import textwrap
@@ -8,6 +9,7 @@ import time
 
 import jax
 import jaxlib
+import numpy as np
 import pytest
 from jax._src.lru_cache import LRUCache
 
@@ -95,3 +97,36 @@ def _read_while_another_process_writes(folder) -> None:
                 break
     assert proc.wait(timeout=120) == 0
     assert lengths == {size}
+
+
+def test_a_run_first_releases_the_programs_of_earlier_runs_near_the_memory_map_limit(tiny, tmp_path):
+    """XLA maps each compiled program's code apart, so one process that runs many settings and image
+    sizes (``mbavo bench mono``) used to die in LLVM past ``vm.max_map_count``. A run now releases the
+    process's programs first when their maps pass ``runtime.release_programs_at`` of the limit; the
+    second run here (limit fraction tiny) releases the first's, reloads them and tracks the same."""
+    script = textwrap.dedent(f"""
+        import json, sys
+        from mbavo_jax.config import RunConfig
+        from mbavo_jax.datasets import open_sequence
+        from mbavo_jax.odometry import run_odometry
+        from mbavo_jax.runtime import make_room_for_programs, memory_maps
+        held, limit = memory_maps()
+        assert not make_room_for_programs(RunConfig().runtime, quiet=True), (held, limit)  # a fresh process is far below
+        seq = open_sequence({str(tiny)!r})
+        config = RunConfig().replace(tracker=dict(n=4), runtime=dict(release_programs_at=1e-6, cache_dir={str(tmp_path / "cache")!r}))
+        first = run_odometry(seq, {str(tmp_path / "a")!r}, config, progress=False)
+        after_first = memory_maps()[0]
+        second = run_odometry(seq, {str(tmp_path / "b")!r}, config, progress=True)
+        print(json.dumps(dict(after_first=after_first, tracked=[first["tracked"], second["tracked"]], hits=second["cache_hits"],
+                              compiled=second["compiled"])))
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    notes = re.findall(r"released the compiled programs .*\((\d+) of the system's \d+ memory maps held, (\d+) now\)", done.stderr)
+    assert len(notes) == 1, done.stderr  # the first run (quiet) released nothing worth a note; the second says it once
+    held_before, held_after = map(int, notes[0])
+    assert held_before >= out["after_first"] - 100 and held_before - held_after > 1000  # the first run's programs were let go
+    assert out["compiled"] == 0 and out["hits"] > 10  # and came back from the compilation cache
+    a, b = (np.loadtxt(tmp_path / run / "trajectory.txt") for run in "ab")
+    assert out["tracked"][0] == out["tracked"][1] == len(a) and np.allclose(a, b, atol=1e-6)

@@ -22,7 +22,7 @@ from ..geometry import Pose
 from ..image import quantize16
 from ..io import prepare_out_dir, read_tum_trajectory
 from ..progress import bar
-from ..runtime import compile_counts, enable_compilation_cache
+from ..runtime import compile_counts, enable_compilation_cache, make_room_for_programs
 from ..tracking import Keyframe, Status
 from ..tracking.memory import check_memory
 from .exposure import RawFrame, with_next
@@ -210,6 +210,7 @@ def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False
     pipeline = pipeline or choose_pipeline(seq, config)
     config = pipeline.config
     enable_compilation_cache(config.runtime)
+    make_room_for_programs(config.runtime, quiet=not progress)
     t_start, counts_start, startup = time.perf_counter(), compile_counts(), None
     if isinstance(pipeline, MonoPipeline) and seq.has_depth:  # monocular: the depth maps are not read
         seq = open_sequence(seq.path, seq.kind, depth=False)

@@ -124,7 +124,7 @@ def test_a_run_first_releases_the_programs_of_earlier_runs_near_the_memory_map_l
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout.strip().splitlines()[-1])
     notes = re.findall(r"released the compiled programs .*\((\d+) of the system's \d+ memory maps held, (\d+) now\)", done.stderr)
-    assert len(notes) == 1, done.stderr  # the first run (quiet) released nothing worth a note; the second says it once
+    assert len(notes) == 1, done.stderr  # the first run releases quietly (progress off); the second says so once
     held_before, held_after = map(int, notes[0])
     assert held_before >= out["after_first"] - 100 and held_before - held_after > 1000  # the first run's programs were let go
     assert out["compiled"] == 0 and out["hits"] > 10  # and came back from the compilation cache

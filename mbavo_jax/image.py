@@ -14,18 +14,12 @@ __all__ = ["to_uint16", "from_uint16", "quantize16", "bilinear_cell", "lerp_cell
 def cell_position(x: Float[Array, "2"], h: int, w: int, border: float = 0.0):
     """The bilinear cell of x = (col, row) in an h x w image (pixel centres at integers): ``(valid,
     u0, v0, fu, fv)``, the cell's top-left pixel (int32) and the position inside it. Outside
-    ``[border, size-1-border]`` valid is False and the cell is the top-left one (coordinates are
-    replaced before use, so gradients stay finite)."""
-    valid = (
-        jnp.isfinite(x).all()
-        & (x[0] >= border)
-        & (x[1] >= border)
-        & (x[0] <= w - 1 - border)
-        & (x[1] <= h - 1 - border)
-    )
-    safe = jnp.where(valid, x, jnp.zeros_like(x))
-    u = jnp.clip(safe[0], 0.0, w - 1.0)
-    v = jnp.clip(safe[1], 0.0, h - 1.0)
+    ``[border, size-1-border]`` valid is False (NaN too: it fails every comparison) and the cell is
+    the top-left one (coordinates are replaced before use, so gradients stay finite). Written per
+    component, without a reduction over x, so that it fuses with the arithmetic around it."""
+    valid = (x[0] >= border) & (x[1] >= border) & (x[0] <= w - 1 - border) & (x[1] <= h - 1 - border)
+    u = jnp.clip(jnp.where(valid, x[0], 0.0), 0.0, w - 1.0)
+    v = jnp.clip(jnp.where(valid, x[1], 0.0), 0.0, h - 1.0)
     fu0 = jnp.clip(jnp.floor(u), 0, w - 2)
     fv0 = jnp.clip(jnp.floor(v), 0, h - 2)
     return valid, fu0.astype(jnp.int32), fv0.astype(jnp.int32), u - fu0, v - fv0

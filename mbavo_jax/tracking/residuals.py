@@ -137,7 +137,8 @@ def _sample_tangent(problem: LevelProblem, pq, ray, d):
     g_i = [a, e × a] with a = Pᵀ w (the 3 x 7 matrix of Eqs. 78-84 is never formed)."""
     value, w, p_ref, ok = _sample_with_point_gradient(problem, pq, ray, d)
     e = p_ref - pq[:3]
-    a = w.at[2].add(-jnp.dot(e, w) / jnp.where(ok, e[2], 1.0))
+    s = (e[0] * w[0] + e[1] * w[1] + e[2] * w[2]) / jnp.where(ok, e[2], 1.0)  # e·w / e_z as a sum: it fuses, a dot does not
+    a = w - s * jnp.array([0.0, 0.0, 1.0], w.dtype)
     return value, jnp.where(ok, jnp.concatenate([a, jnp.cross(e, a)]), 0.0), ok
 
 

@@ -28,8 +28,9 @@ def test_cell_position_marks_nan_infinite_and_outside_points_invalid():
         assert bool(got[0]) == want[0], x
         assert (int(got[1]), int(got[2])) == want[1:3], x
         np.testing.assert_allclose([float(got[3]), float(got[4])], want[3:], atol=1e-6, err_msg=str(x))
-    valid, *_ = cell_position(jnp.asarray([1.5, 1.5], jnp.float32), h, w, border=2.0)
-    assert not bool(valid)
+    for x, want in {(1.5, 2.0): False, (2.0, 2.0): True, (5.0, 3.0): True, (5.01, 3.0): False, (5.0, 3.01): False}.items():
+        valid, *_ = cell_position(jnp.asarray(x, jnp.float32), h, w, border=2.0)  # valid: [2, w - 3] x [2, h - 3]
+        assert bool(valid) == want, x
 
 
 def test_bilinear_gradient_is_finite_at_invalid_points():

@@ -175,6 +175,38 @@ def test_black_frame_nan_depth_and_jump_are_lost_frames_not_crashes(seq_dir, tmp
 
 
 @pytest.mark.slow
+def test_a_fit_far_from_the_prediction_is_kept_when_a_second_start_reaches_it(seq_dir, tmp_path):
+    """Frame 9 shows frame 10's view (the camera ahead of its timestamp), so the prediction of frame
+    10 overshoots by a frame's motion and its fit lies beyond the jump limit. Tracked again from frame
+    9's path, it lands on the same pose: it is kept, with a note, at its true place. With
+    ``odometry.confirm_jumps`` off it is dropped as implausible."""
+    from mbavo_jax.evaluation.metrics import aligned_positions
+
+    early = tmp_path / "early"
+    shutil.copytree(seq_dir, early)
+    for sub in ("rgb", "depth"):
+        files = sorted((early / sub).glob("*.png"))
+        shutil.copy(files[10], files[9])
+    seq = open_sequence(early)
+    rows = {}
+    for confirm in ("true", "false"):
+        out = tmp_path / confirm
+        summary = run_odometry(seq, out, load_config(None, [*SMALL_SET, f"odometry.confirm_jumps={confirm}"]), progress=False)
+        rows[confirm] = {int(r["index"]): r for r in frames_csv(out)}
+        assert summary["dropped"] == (1 if confirm == "false" else 0), (confirm, summary)
+    off, on = rows["false"][10], rows["true"][10]
+    assert off["status"] == "implausible" and "from the prediction" in off["note"], off
+    assert on["status"] in ("converged", "max_steps") and "kept: a second start's fit is" in on["note"], on
+    assert float(on["jump_px"]) == pytest.approx(float(off["jump_px"]))  # the same fit, judged twice
+    t, p = read_tum_trajectory(tmp_path / "true" / "trajectory.txt")
+    t_ref, p_ref = seq.groundtruth
+    i_est, _, ref, est = aligned_positions(t_ref, p_ref, t, p)
+    err = np.linalg.norm(est - ref, axis=1)
+    k = int(np.flatnonzero(np.isclose(t[i_est], seq.timestamps[10], atol=1e-6))[0])
+    assert err[k] <= max(2 * float(np.median(err)), 0.005), (err[k], err)  # frame 10 where it was
+
+
+@pytest.mark.slow
 def test_deblurring_improves_psnr_and_ssim(seq_dir):
     seq = open_sequence(seq_dir)
     import jax.numpy as jnp

@@ -28,7 +28,7 @@ from .exposure import (ExposureEstimate, RawFrame, adaptive_n, blind, exposure_m
 from .stats import PointStats, keyframe_stats
 from .state import ExposureReport, Fit, FrameOutcome, KeyframeState, NewKeyframe, Pairing, PendingDeblur, RunState, Triptych
 
-__all__ = ["RGBDPipeline", "PointStats", "needs_keyframe", "keyframe_stats", "implausible"]
+__all__ = ["RGBDPipeline", "PointStats", "needs_keyframe", "keyframe_stats", "implausible", "residual_too_large", "far_from_prediction"]
 
 
 SETTLED_SAMPLES = 6  # the estimate's last samples that ``odometry.exposure_settled`` compares
@@ -43,23 +43,32 @@ def needs_keyframe(stats: PointStats, width: int, odo: OdometryConfig) -> bool:
                 or (flow > odo.keyframe_flow * width and stats.blur_px <= odo.keyframe_max_blur_px))
 
 
-def implausible(fit: Fit, history: tuple[Fit, ...], odo: OdometryConfig, steps: float = 1.0) -> str | None:
-    """Why a usable fit disagrees with the last ``reject_window`` accepted ones (None: it does not):
-    its RMS beyond ``reject_rms_ratio`` times their largest, or its distance from the prediction
-    beyond ``reject_jump_ratio`` times their median plus ``reject_jump_px``, per frame interval
-    predicted over (``steps``). Needs 3 of them."""
-    recent = history[-odo.reject_window:]
-    if len(recent) < 3:
-        return None
+def residual_too_large(fit: Fit, recent: tuple[Fit, ...], odo: OdometryConfig) -> str | None:
+    """Why the fit's RMS is beyond ``reject_rms_ratio`` times the largest of the ``recent`` fits' (None: it is not)."""
     rms = max(h.rms for h in recent)
     if odo.reject_rms_ratio > 0 and fit.rms > odo.reject_rms_ratio * rms:
         return f"residual RMS {fit.rms / max(rms, 1e-12):.1f}x the largest of the last {len(recent)} frames"
+    return None
+
+
+def far_from_prediction(fit: Fit, recent: tuple[Fit, ...], odo: OdometryConfig, steps: float = 1.0) -> str | None:
+    """Why the fit's pose lies beyond ``reject_jump_ratio`` times the ``recent`` fits' median distance
+    from their prediction plus ``reject_jump_px``, per frame interval predicted over (None: it does not)."""
     jumps = [h.jump_px for h in recent if h.jump_px is not None]
     if odo.reject_jump_ratio > 0 and fit.jump_px is not None and len(jumps) >= 3:
         limit = (odo.reject_jump_ratio * float(np.median(jumps)) + odo.reject_jump_px) * max(steps, 1.0)
         if fit.jump_px > limit:
             return f"pose {fit.jump_px:.1f} px from the prediction (limit {limit:.1f} px)"
     return None
+
+
+def implausible(fit: Fit, history: tuple[Fit, ...], odo: OdometryConfig, steps: float = 1.0) -> str | None:
+    """Why a usable fit disagrees with the last ``reject_window`` accepted ones (None: it does not):
+    :func:`residual_too_large` or :func:`far_from_prediction`. Needs 3 of them."""
+    recent = history[-odo.reject_window:]
+    if len(recent) < 3:
+        return None
+    return residual_too_large(fit, recent, odo) or far_from_prediction(fit, recent, odo, steps)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -197,16 +206,17 @@ class RGBDPipeline:
         report = self.exposure_report(state, frame, 0.0)
         return state, FrameOutcome(index, frame.timestamp, "keyframe", T_w, T_w, T_w, new_keyframe=new, exposure=report)
 
-    def predict(self, state: RunState, frame) -> tuple[ExposureTrajectory, bool]:
+    def predict(self, state: RunState, frame, gap: float | None = None) -> tuple[ExposureTrajectory, bool]:
         """The frame's exposure path in the keyframe, by constant velocity from the last two mid
-        poses (over the whole frame time: exposure plus readout), or the last pose (no motion) when
-        the velocity is not known; and whether it was known."""
+        poses (over the whole frame time: exposure plus readout) ``gap`` seconds on from the last
+        (default: up to the frame's time), or the last pose (no motion) when the velocity is not
+        known; and whether it was known."""
         T_w_kf = state.keyframe.T_world_kf
         if len(state.mids) >= 2:
             (ta, Ta), (tb, Tb) = state.mids[-2], state.mids[-1]
             dt = max(tb - ta, 1e-6)
             span = self.exposure_of(state, frame, dt) + self.config.tracker.readout_s
-            return constant_velocity_guess(T_w_kf, Ta, Tb, dt, span, frame.timestamp - tb), True
+            return constant_velocity_guess(T_w_kf, Ta, Tb, dt, span, frame.timestamp - tb if gap is None else gap), True
         last = T_w_kf.inverse().compose(state.mids[-1][1])
         return ExposureTrajectory(last, last), False
 
@@ -251,16 +261,38 @@ class RGBDPipeline:
                 informed: bool) -> tuple[TrackResult, Fit | None]:
         """A usable result's fit (its distance from the prediction only when ``informed`` by a
         velocity), and the result marked IMPLAUSIBLE, with the reason in its diagnostics, when it
-        disagrees with the frames before it (``implausible``)."""
+        disagrees with the frames before it (``implausible``), unless only its distance from the
+        prediction does and a second start confirms it (:meth:`confirmed`)."""
         if not result.status.ok:
             return result, None
         fit, steps = Fit(float(result.diagnostics["rms"]), stats.jump_px if informed else None), 1.0
         if len(state.mids) >= 2:  # frame intervals predicted over (more after an implausible frame)
             steps = (frame.timestamp - state.mids[-1][0]) / max(state.mids[-1][0] - state.mids[-2][0], 1e-6)
-        reason = implausible(fit, state.fits, self.config.odometry, steps)
+        odo = self.config.odometry
+        reason = implausible(fit, state.fits, odo, steps)
+        if reason is not None and odo.confirm_jumps and residual_too_large(fit, state.fits[-odo.reject_window:], odo) is None:
+            apart = self.confirmed(state, frame, result)
+            if apart is not None:
+                note = f"{reason}; kept: a second start's fit is {apart:.1f} px from it"
+                return dataclasses.replace(result, diagnostics={**result.diagnostics, "confirmed": note}), fit
+            reason = f"{reason}; a second start did not confirm it"
         if reason is not None:
             result = dataclasses.replace(result, status=Status.IMPLAUSIBLE, diagnostics={**result.diagnostics, "implausible": reason})
         return result, fit
+
+    def confirmed(self, state: RunState, frame, result: TrackResult) -> float | None:
+        """How far (mean px over the keyframe's points) the frame tracked again from the last frame's
+        path (the prediction less its last step) lands from ``result``'s mid-exposure pose, when that
+        is at most ``odometry.reject_jump_px`` (None: further, or the second track failed). Two starts
+        a frame's motion apart that reach one pose say the image, not the prediction, placed it."""
+        rho = result.diagnostics.get("readout", 0.0)
+        init, _ = self.predict(state, frame, gap=0.0)
+        second = track(state.keyframe.keyframe, frame.image, init, self.frame_tracker(state, frame, init, True, rho),
+                       depth=frame.depth, readout=rho)
+        if not second.status.ok:
+            return None
+        apart = self.frame_stats(state, second, result.trajectory.middle_row_path(rho).middle()).jump_px
+        return apart if apart <= self.config.odometry.reject_jump_px else None
 
     def deblurred(self, image, depth, path: ExposurePath, readout: float = 0.0) -> tuple[np.ndarray, int]:
         """(sharp image as stored, virtual frames used): ``image`` deconvolved along its exposure

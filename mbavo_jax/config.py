@@ -279,8 +279,9 @@ class OdometryConfig(Settings):
                                        "of the recent frames' median distance plus reject_jump_px, per frame interval (0 = off)", NONNEG)
     reject_jump_px: float = setting(4.0, "see reject_jump_ratio (full-resolution pixels)", NONNEG)
     reject_window: int = setting(10, "the recent tracked frames the two checks above compare with (they start after 3)", AT_LEAST_1)
-    confirm_jumps: bool = setting(True, "a fit implausible only by its distance from the prediction is tracked again from the last "
-                                  "frame's path and kept when both fits lie within reject_jump_px of each other")
+    confirm_jumps: bool = setting(True, "a fit implausible only by its distance from the prediction is tracked again by local descent "
+                                  "from the last tracked frame's pose, and kept when that start lies at least, and the two fits at "
+                                  "most, reject_jump_px apart")
     triptychs: int = setting(3, "blurry / reblurred / deblurred images written for the first deblurred keyframes", NONNEG)
 
 

@@ -66,7 +66,7 @@ def _csv_row(o: FrameOutcome) -> list:
     jump = "" if o.fit is None or o.fit.jump_px is None else repr(o.fit.jump_px)
     return [o.index, f"{o.timestamp:.6f}", o.status, rms, levels[-1].get("n", 0),
             f"{diag.get('blur_px', 0.0):.2f}", diag.get("hypothesis", ""), f"{1000 * o.track_seconds:.1f}", int(o.new_keyframe is not None),
-            *_exposure_cells(o.exposure), jump, o.note or diag.get("implausible") or diag.get("confirmed", ""),
+            *_exposure_cells(o.exposure), jump, "; ".join(filter(None, (o.note, diag.get("implausible") or diag.get("confirmed")))),
             f"{1000 * o.backend_seconds:.1f}" if o.backend_seconds else "", f"{resident_mb():.1f}"]
 
 

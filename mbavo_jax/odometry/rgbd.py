@@ -13,6 +13,7 @@ becomes a keyframe at the last good pose. No file I/O happens here.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
 import numpy as np
@@ -43,9 +44,16 @@ def needs_keyframe(stats: PointStats, width: int, odo: OdometryConfig) -> bool:
                 or (flow > odo.keyframe_flow * width and stats.blur_px <= odo.keyframe_max_blur_px))
 
 
+@functools.lru_cache(maxsize=16)
+def local(config: TrackerConfig) -> TrackerConfig:
+    """``config`` without the motion hypotheses: local descent from the guess alone (one object per
+    config, so the tracker's caches hit)."""
+    return dataclasses.replace(config, hypotheses=False)
+
+
 def residual_too_large(fit: Fit, recent: tuple[Fit, ...], odo: OdometryConfig) -> str | None:
     """Why the fit's RMS is beyond ``reject_rms_ratio`` times the largest of the ``recent`` fits' (None: it is not)."""
-    rms = max(h.rms for h in recent)
+    rms = max((h.rms for h in recent), default=float("inf"))
     if odo.reject_rms_ratio > 0 and fit.rms > odo.reject_rms_ratio * rms:
         return f"residual RMS {fit.rms / max(rms, 1e-12):.1f}x the largest of the last {len(recent)} frames"
     return None
@@ -270,7 +278,7 @@ class RGBDPipeline:
             steps = (frame.timestamp - state.mids[-1][0]) / max(state.mids[-1][0] - state.mids[-2][0], 1e-6)
         odo = self.config.odometry
         reason = implausible(fit, state.fits, odo, steps)
-        if reason is not None and odo.confirm_jumps and residual_too_large(fit, state.fits[-odo.reject_window:], odo) is None:
+        if reason is not None and odo.confirm_jumps and not residual_too_large(fit, state.fits[-odo.reject_window:], odo):
             apart = self.confirmed(state, frame, result)
             if apart is not None:
                 note = f"{reason}; kept: a second start's fit is {apart:.1f} px from it"
@@ -281,18 +289,20 @@ class RGBDPipeline:
         return result, fit
 
     def confirmed(self, state: RunState, frame, result: TrackResult) -> float | None:
-        """How far (mean px over the keyframe's points) the frame tracked again from the last frame's
-        path (the prediction less its last step) lands from ``result``'s mid-exposure pose, when that
-        is at most ``odometry.reject_jump_px`` (None: further, or the second track failed). Two starts
-        a frame's motion apart that reach one pose say the image, not the prediction, placed it."""
-        rho = result.diagnostics.get("readout", 0.0)
+        """The distance (mean px over the keyframe's points) between ``result``'s mid-exposure pose and
+        the frame's fit from a second start, the last tracked frame's mid pose, by local descent
+        alone (:func:`local`), when the two starts lie at least and the two fits at most
+        ``odometry.reject_jump_px`` apart (None: otherwise, or the second track failed)."""
+        odo, kf, rho = self.config.odometry, state.keyframe.keyframe, result.diagnostics.get("readout", 0.0)
+        first, _ = self.predict(state, frame)
         init, _ = self.predict(state, frame, gap=0.0)
-        second = track(state.keyframe.keyframe, frame.image, init, self.frame_tracker(state, frame, init, True, rho),
-                       depth=frame.depth, readout=rho)
+        if self.point_stats(kf, init, init.middle(), first.middle()).jump_px < odo.reject_jump_px:
+            return None  # the second start would retrace the first
+        second = track(kf, frame.image, init, local(self.frame_tracker(state, frame, init, True, rho)), depth=frame.depth, readout=rho)
         if not second.status.ok:
             return None
         apart = self.frame_stats(state, second, result.trajectory.middle_row_path(rho).middle()).jump_px
-        return apart if apart <= self.config.odometry.reject_jump_px else None
+        return apart if apart <= odo.reject_jump_px else None
 
     def deblurred(self, image, depth, path: ExposurePath, readout: float = 0.0) -> tuple[np.ndarray, int]:
         """(sharp image as stored, virtual frames used): ``image`` deconvolved along its exposure

@@ -331,7 +331,8 @@ def _cmd_demo(args) -> int:
 
     data = out / "sequence"
     if not (data / "exposure.txt").is_file():
-        cfg = SynthConfig(**{**PRESETS[args.preset], "frames": args.frames, "width": args.width, "height": args.height, "seed": args.seed})
+        cfg = SynthConfig(**{**PRESETS[args.preset], "frames": args.frames, "width": args.width, "height": args.height, "seed": args.seed,
+                             "real_textures": False})  # the same sequence on every machine, shared data or not
         print(f"generating a {args.preset}-blur sequence: {args.frames} frames {args.width}x{args.height} -> {data}", flush=True)
         generate_sequence(cfg, data, progress=not args.quiet)
     seq = open_sequence(data)

@@ -455,6 +455,8 @@ class BenchConfig(Settings):
     width: int = setting(640, "image width of generated sequences", at_least(16))
     height: int = setting(480, "image height of generated sequences", at_least(16))
     seed: int = setting(0, "seed of generated sequences", NONNEG)
+    seeds: str = setting("", "mono: more seeds of the generated presets, comma-separated (rows <preset>_s<seed>_noexp); the "
+                         "output adds each method's mean ATE over all seeds and its ratio to mono_n1 ('': none)")
     out: str = setting("runs/bench_odometry", "odometry: output folder")
     methods: str = setting("", "odometry: comma-separated subset of the methods (default all)")
     depth_weight: float = setting(0.03, "odometry: tracker.depth_weight of the *_depth methods", NONNEG)
@@ -472,6 +474,14 @@ class BenchConfig(Settings):
     readouts: str = setting("0,15,30", "rolling-shutter: readout times (ms) of the generated sequences, comma-separated")
     shake_deg: float = setting(0.5, "rolling-shutter: handheld-shake amplitude (deg) of a second, curved-path set of sequences "
                                "(every preset and readout again; 0 = none)", NONNEG)
+
+    def relations(self) -> list[str]:
+        bad = [s for s in self.seeds.split(",") if s.strip() and not s.strip().isdigit()]
+        return [f"seeds: not a non-negative integer: {', '.join(bad)}"] if bad else []
+
+    def seed_list(self) -> list[int]:
+        """``seed`` and then the other ``seeds``, each once."""
+        return list(dict.fromkeys([self.seed, *(int(s) for s in self.seeds.split(",") if s.strip())]))
 
 
 @dataclasses.dataclass(frozen=True)

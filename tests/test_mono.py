@@ -229,3 +229,26 @@ def test_the_bench_defaults_find_the_real_clips_from_any_folder(tmp_path, monkey
     (tmp_path / "mine").mkdir()
     assert real_clip("mine") == pathlib.Path("mine")
     assert real_clip("../nowhere/clip") == pathlib.Path("../nowhere/clip")
+
+
+def test_the_bench_means_over_seeds_compare_only_sequences_both_methods_scored():
+    """``bench mono --seeds``: the presets' sequences at each seed (the base seed keeps the plain
+    name), and per method the mean ATE over the seeds it scored, its ratio to mono_n1 over the
+    sequences both scored, and each seed's ratio; a run without a score counts as run, not scored."""
+    from mbavo_jax.bench_mono import format_seed_table, seed_groups, seed_means
+
+    cfg = BenchConfig(presets="none,strong", seed=3, seeds="1,3, 2")
+    assert seed_groups(cfg) == {"none": {"none": 3, "none_s1": 1, "none_s2": 2}, "strong": {"strong": 3, "strong_s1": 1, "strong_s2": 2}}
+    with pytest.raises(Exception, match="seeds: not a non-negative integer: x"):
+        BenchConfig(seeds="1,x")
+    results = {"a": {"mono_n64": {"ate_pct": 0.4}, "mono_n1": {"ate_pct": 0.2}},
+               "b": {"mono_n64": {"ate_pct": 0.1}, "mono_n1": {"ate_pct": 0.3}},
+               "c": {"mono_n64": {"ate_pct": 9.0}, "mono_n1": {"dropped": 3}}}
+    means = seed_means(results, ["a", "b", "c"])
+    assert means["mono_n64"]["scored"] == 3 and means["mono_n64"]["runs"] == 3
+    assert means["mono_n64"]["mean_ate_pct"] == pytest.approx(9.5 / 3)
+    assert means["mono_n64"]["ratio"] == pytest.approx(0.5 / 0.5)  # c is left out: n = 1 has no score there
+    assert means["mono_n64"]["ratios"] == pytest.approx([2.0, 1 / 3])
+    assert means["mono_n1"]["scored"] == 2 and means["mono_n1"]["runs"] == 3
+    table = format_seed_table(results, {"none": ["a", "b", "c"]})
+    assert "| none | mono_n64 | 3 of 3 | 3.167 | 1.00 | 2.00, 0.33 |" in table

@@ -6,7 +6,8 @@ over ``delta`` frames (translation % and scale %), frames without a pose (droppe
 keyframes, and seconds per frame split into tracking, the back-end (candidates, bundle adjustment,
 marginalisation) and the rest (deblurring, I/O), and the seconds of that spent compiling or loading
 programs (a run at an image size the process has not seen yet pays it). With ``--seeds``, each
-preset again at more seeds, and a second table of each method's mean ATE over the seeds.
+preset again at more seeds, and a second table of each method's mean ATE over the seeds (also in
+``seed_means.json`` beside ``results.json``).
 """
 
 from __future__ import annotations
@@ -157,6 +158,8 @@ def main_mono(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
     root = pathlib.Path(cfg.out if cfg.out != BenchConfig().out else "runs/bench_mono")
     results = run_mono_benchmark(seqs, root, methods, progress=not quiet)
     names = {p: [f"{n}_noexp" for n in named] for p, named in groups.items()}
+    if len(cfg.seed_list()) > 1:
+        (root / "seed_means.json").write_text(json.dumps({p: seed_means(results, n) for p, n in names.items()}, indent=2))
     if fmt == "json":
         print(json.dumps(results, indent=2))
     else:

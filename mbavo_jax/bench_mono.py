@@ -126,7 +126,7 @@ def _cell(r: dict) -> str:
     return (f"{r['ate_rmse_m']:.4f} m ({r['ate_pct']:.2f} %) | drift {r['drift_trans_pct']:.1f} % / scale {r['drift_scale_pct']:.1f} % | "
             f"drop {r['dropped']} init {r['initialising']} kf {r['keyframes']} | {r['seconds_per_frame']:.2f} s/f "
             f"(track {r['track_s_per_frame']:.2f}, BA {r['backend_s_per_frame']:.2f}, other {r['other_s_per_frame']:.2f}; "
-            f"back-end/kf {r['backend_s_per_keyframe']:.2f}; compiling {r.get('compile_s', 0.0):.0f} s)")
+            f"back-end/kf {r['backend_s_per_keyframe']:.2f}; compiling {r['compile_s']:.0f} s)")
 
 
 def format_mono_table(results: dict) -> str:
@@ -157,13 +157,13 @@ def main_mono(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
     methods = [m for m in cfg.methods.split(",") if m] or MONO_METHODS
     root = pathlib.Path(cfg.out if cfg.out != BenchConfig().out else "runs/bench_mono")
     results = run_mono_benchmark(seqs, root, methods, progress=not quiet)
-    names = {p: [f"{n}_noexp" for n in named] for p, named in groups.items()}
-    if len(cfg.seed_list()) > 1:
+    names, several = {p: [f"{n}_noexp" for n in named] for p, named in groups.items()}, len(cfg.seed_list()) > 1
+    if several:
         (root / "seed_means.json").write_text(json.dumps({p: seed_means(results, n) for p, n in names.items()}, indent=2))
     if fmt == "json":
         print(json.dumps(results, indent=2))
     else:
-        print(format_mono_table(results) + ("\n\n" + format_seed_table(results, names) if len(cfg.seed_list()) > 1 else ""))
+        print(format_mono_table(results) + ("\n\n" + format_seed_table(results, names) if several else ""))
     return 0
 
 

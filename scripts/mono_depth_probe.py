@@ -1,0 +1,154 @@
+#!/usr/bin/env python3
+"""How right a monocular run's depths are: per new keyframe, the tracker's points against the true depth.
+
+Runs one ``mbavo bench mono`` method on a generated sequence that has depth maps (the monocular
+pipeline does not read them). At each new keyframe it prints, over the tracker's level-0 points:
+
+- ``scale``: the median ratio of estimated to true inverse depth (the map's scale; steady when the
+  scale does not drift);
+- ``log_err``: the median absolute log ratio of estimated to true depth after that scale;
+- ``corr``: the correlation of estimated and true inverse depth;
+- ``true_cv``: the coefficient of variation of the true inverse depths (what tells translation from
+  rotation).
+
+After the run: the frame-to-frame rotation error and translation direction error against the
+ground truth (medians per block of frames), and the ATE. ``--oracle`` sets each point that joins
+the window to its true inverse depth at its host pixel, brought to the window's scale (the median
+ratio over the points already there). Used for "The collapse traced to the new points' depths" in
+docs/benchmarks.md. Example:
+
+    python scripts/mono_depth_probe.py runs/bench_extreme_640x480_seed0 --method mono_n64 --out /tmp/probe
+"""
+
+import argparse
+import dataclasses
+import json
+import pathlib
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from mbavo_jax.bench_mono import MONO_METHODS, mono_configs, trajectory_scores
+from mbavo_jax.config import TrackerConfig, calibration_of
+from mbavo_jax.datasets import open_sequence
+from mbavo_jax.evaluation.associate import associate
+from mbavo_jax.geometry import Pose
+from mbavo_jax.io import read_tum_trajectory
+from mbavo_jax.odometry import run_odometry
+from mbavo_jax.odometry import mono as om
+
+
+@dataclasses.dataclass(frozen=True)
+class Truth:
+    """The sequence's true depth maps, looked up by stamp."""
+
+    seq: object
+
+    def depth(self, stamp: float) -> np.ndarray:
+        stamps = np.asarray(self.seq.timestamps)
+        return self.seq[int(np.argmin(np.abs(stamps - stamp)))].depth
+
+    def idepth(self, stamp: float, pixels: np.ndarray) -> np.ndarray:
+        """(N,) true inverse depth at host pixels (N, 2) of the frame at ``stamp`` (NaN where none)."""
+        d = self.depth(stamp)
+        u = np.clip(np.rint(pixels[:, 0]).astype(int), 0, d.shape[1] - 1)
+        v = np.clip(np.rint(pixels[:, 1]).astype(int), 0, d.shape[0] - 1)
+        z = d[v, u]
+        return np.where(np.isfinite(z) & (z > 0), 1.0 / np.where(z > 0, z, 1.0), np.nan)
+
+
+def depth_row(truth: Truth, stamp: float, pixels: np.ndarray, depths: np.ndarray) -> dict:
+    """The figures of one keyframe's points (module docstring)."""
+    rt = truth.idepth(stamp, pixels)
+    ok = np.isfinite(rt) & np.isfinite(depths) & (depths > 0)
+    re, rt = 1.0 / depths[ok], rt[ok]
+    if len(rt) < 3:
+        return {"points": int(ok.sum())}
+    scale = float(np.median(re / rt))
+    return {"points": int(ok.sum()), "scale": round(scale, 3), "log_err": round(float(np.median(np.abs(np.log(re / (rt * scale))))), 3),
+            "corr": round(float(np.corrcoef(rt, re)[0, 1]), 2), "true_cv": round(float(rt.std() / rt.mean()), 2)}
+
+
+def observer(truth: Truth):
+    """The loop's observer: prints ``depth_row`` of the tracker's keyframe at each new keyframe."""
+
+    def observe(frame, before, outcome, after):
+        kf = after.keyframe
+        if kf is None or (before.keyframe is not None and before.keyframe.stamp == kf.stamp):
+            return
+        points = kf.keyframe.points[0]
+        row = depth_row(truth, kf.stamp, points.pixels[points.valid], points.depths[points.valid])
+        print(json.dumps({"frame": frame.index, **row}), flush=True)
+
+    return observe
+
+
+def oracle_activate(truth: Truth):
+    """``MonoPipeline._activate`` that sets the points joining the window to their true inverse
+    depth at the window's scale."""
+    activate = om.MonoPipeline._activate
+
+    def patched(self, mono, T_world_frame):
+        before = np.asarray(mono.window.point_valid)
+        mono = activate(self, mono, T_world_frame)
+        w = mono.window
+        new = np.asarray(w.point_valid) & ~before
+        if not new.any():
+            return mono
+        host, pixels, est = np.asarray(w.host), np.asarray(w.pixels), np.asarray(w.idepth)
+        rt = np.full(est.shape, np.nan)
+        for slot, stamp in zip(mono.slots, mono.stamps):
+            rt[host == slot] = truth.idepth(stamp, pixels[host == slot])
+        old = before & np.isfinite(rt)
+        ref = old if old.sum() > 20 else new & np.isfinite(rt)
+        scale = float(np.median(est[ref] / rt[ref])) if ref.any() else 1.0
+        idepth = np.where(new & np.isfinite(rt), rt * scale, est).astype(np.float32)
+        return mono.replace(window=eqx.tree_at(lambda x: x.idepth, w, jnp.asarray(idepth)))
+
+    return patched
+
+
+def motion_errors(seq, run: pathlib.Path, block: int = 20) -> list[dict]:
+    """Per block of ``block`` frame pairs: the median rotation error (deg) and translation direction
+    error (deg) of the run's frame-to-frame motion against the ground truth."""
+    t_est, p_est = read_tum_trajectory(run / "trajectory.txt")
+    t_gt, p_gt = seq.groundtruth
+    i_est, i_gt = associate(t_est, t_gt, 1e-3)
+    pose = lambda p: Pose(jnp.asarray(p[3:7]), jnp.asarray(p[:3]))  # noqa: E731  [t, q] -> Pose
+    rows = []
+    for a, b in zip(range(len(i_est) - 1), range(1, len(i_est))):
+        de = pose(p_est[i_est[a]]).inverse().compose(pose(p_est[i_est[b]]))
+        dg = pose(p_gt[i_gt[a]]).inverse().compose(pose(p_gt[i_gt[b]]))
+        w = min(1.0, abs(float(dg.inverse().compose(de).q[3])))
+        te, tg = np.asarray(de.t), np.asarray(dg.t)
+        cos = te @ tg / (np.linalg.norm(te) * np.linalg.norm(tg) + 1e-12)
+        rows.append((np.degrees(2 * np.arccos(w)), np.degrees(np.arccos(np.clip(cos, -1, 1)))))
+    rows = np.asarray(rows)
+    return [{"pairs": f"{k}-{min(k + block, len(rows))}", "rot_err_deg": round(float(np.median(rows[k:k + block, 0])), 3),
+             "t_dir_err_deg": round(float(np.median(rows[k:k + block, 1])), 1)} for k in range(0, len(rows), block)]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("sequence", help="a generated sequence (with depth maps)")
+    ap.add_argument("--method", default="mono_n64", choices=list(MONO_METHODS))
+    ap.add_argument("--out", required=True, help="the run's folder")
+    ap.add_argument("--oracle", action="store_true", help="points join the window at their true depth (at the window's scale)")
+    args = ap.parse_args()
+    seq, truth = open_sequence(args.sequence), Truth(open_sequence(args.sequence))
+    if not seq.has_depth:
+        raise SystemExit(f"mono_depth_probe: {args.sequence} has no depth maps to compare with")
+    if args.oracle:
+        om.MonoPipeline._activate = oracle_activate(truth)
+    config = mono_configs(TrackerConfig(**calibration_of(seq.meta)), (args.method,))[args.method]
+    out = pathlib.Path(args.out)
+    run_odometry(seq, out, config, progress=False, observer=observer(truth))
+    for row in motion_errors(seq, out):
+        print(json.dumps(row))
+    print(json.dumps(trajectory_scores(seq, out, config.evaluation)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -33,7 +33,7 @@ from mbavo_jax.bench_mono import MONO_METHODS, mono_configs, trajectory_scores
 from mbavo_jax.config import TrackerConfig, calibration_of
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.evaluation.associate import associate
-from mbavo_jax.geometry import Pose
+from mbavo_jax.evaluation.poses import pose_matrices
 from mbavo_jax.io import read_tum_trajectory
 from mbavo_jax.odometry import run_odometry
 from mbavo_jax.odometry import mono as om
@@ -115,18 +115,15 @@ def motion_errors(seq, run: pathlib.Path, block: int = 20) -> list[dict]:
     t_est, p_est = read_tum_trajectory(run / "trajectory.txt")
     t_gt, p_gt = seq.groundtruth
     i_est, i_gt = associate(t_est, t_gt, 1e-3)
-    pose = lambda p: Pose(jnp.asarray(p[3:7]), jnp.asarray(p[:3]))  # noqa: E731  [t, q] -> Pose
-    rows = []
-    for a, b in zip(range(len(i_est) - 1), range(1, len(i_est))):
-        de = pose(p_est[i_est[a]]).inverse().compose(pose(p_est[i_est[b]]))
-        dg = pose(p_gt[i_gt[a]]).inverse().compose(pose(p_gt[i_gt[b]]))
-        w = min(1.0, abs(float(dg.inverse().compose(de).q[3])))
-        te, tg = np.asarray(de.t), np.asarray(dg.t)
-        cos = te @ tg / (np.linalg.norm(te) * np.linalg.norm(tg) + 1e-12)
-        rows.append((np.degrees(2 * np.arccos(w)), np.degrees(np.arccos(np.clip(cos, -1, 1)))))
-    rows = np.asarray(rows)
-    return [{"pairs": f"{k}-{min(k + block, len(rows))}", "rot_err_deg": round(float(np.median(rows[k:k + block, 0])), 3),
-             "t_dir_err_deg": round(float(np.median(rows[k:k + block, 1])), 1)} for k in range(0, len(rows), block)]
+    E, G = pose_matrices(p_est[i_est]), pose_matrices(p_gt[i_gt])
+    de, dg = np.linalg.inv(E[:-1]) @ E[1:], np.linalg.inv(G[:-1]) @ G[1:]
+    err = np.linalg.inv(dg) @ de
+    rot = np.degrees(np.arccos(np.clip((np.trace(err[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+    te, tg = de[:, :3, 3], dg[:, :3, 3]
+    cos = (te * tg).sum(1) / (np.linalg.norm(te, axis=1) * np.linalg.norm(tg, axis=1) + 1e-12)
+    direction = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return [{"pairs": f"{k}-{min(k + block, len(rot))}", "rot_err_deg": round(float(np.median(rot[k:k + block])), 3),
+             "t_dir_err_deg": round(float(np.median(direction[k:k + block])), 1)} for k in range(0, len(rot), block)]
 
 
 def main() -> int:

@@ -39,15 +39,21 @@ from mbavo_jax.odometry import run_odometry
 from mbavo_jax.odometry import mono as om
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass
 class Truth:
-    """The sequence's true depth maps, looked up by stamp."""
+    """The sequence's true depth maps, looked up by stamp (``associate``), each read once."""
 
     seq: object
+    max_diff: float
+    maps: dict = dataclasses.field(default_factory=dict)
 
     def depth(self, stamp: float) -> np.ndarray:
-        stamps = np.asarray(self.seq.timestamps)
-        return self.seq[int(np.argmin(np.abs(stamps - stamp)))].depth
+        _, i = associate(np.array([stamp]), np.asarray(self.seq.timestamps), self.max_diff)
+        if len(i) == 0:
+            raise SystemExit(f"mono_depth_probe: no frame of the sequence at stamp {stamp}")
+        if int(i[0]) not in self.maps:
+            self.maps[int(i[0])] = self.seq[int(i[0])].depth
+        return self.maps[int(i[0])]
 
     def idepth(self, stamp: float, pixels: np.ndarray) -> np.ndarray:
         """(N,) true inverse depth at host pixels (N, 2) of the frame at ``stamp`` (NaN where none)."""
@@ -109,12 +115,12 @@ def oracle_activate(truth: Truth):
     return patched
 
 
-def motion_errors(seq, run: pathlib.Path, block: int = 20) -> list[dict]:
+def motion_errors(seq, run: pathlib.Path, max_diff: float, block: int = 20) -> list[dict]:
     """Per block of ``block`` frame pairs: the median rotation error (deg) and translation direction
     error (deg) of the run's frame-to-frame motion against the ground truth."""
     t_est, p_est = read_tum_trajectory(run / "trajectory.txt")
     t_gt, p_gt = seq.groundtruth
-    i_est, i_gt = associate(t_est, t_gt, 1e-3)
+    i_est, i_gt = associate(t_est, t_gt, max_diff)
     E, G = pose_matrices(p_est[i_est]), pose_matrices(p_gt[i_gt])
     de, dg = np.linalg.inv(E[:-1]) @ E[1:], np.linalg.inv(G[:-1]) @ G[1:]
     err = np.linalg.inv(dg) @ de
@@ -133,15 +139,16 @@ def main() -> int:
     ap.add_argument("--out", required=True, help="the run's folder")
     ap.add_argument("--oracle", action="store_true", help="points join the window at their true depth (at the window's scale)")
     args = ap.parse_args()
-    seq, truth = open_sequence(args.sequence), Truth(open_sequence(args.sequence))
+    seq = open_sequence(args.sequence)
     if not seq.has_depth:
         raise SystemExit(f"mono_depth_probe: {args.sequence} has no depth maps to compare with")
+    config = mono_configs(TrackerConfig(**calibration_of(seq.meta)), (args.method,))[args.method]
+    truth = Truth(open_sequence(args.sequence), config.evaluation.t_max_diff)
     if args.oracle:
         om.MonoPipeline._activate = oracle_activate(truth)
-    config = mono_configs(TrackerConfig(**calibration_of(seq.meta)), (args.method,))[args.method]
     out = pathlib.Path(args.out)
     run_odometry(seq, out, config, progress=False, observer=observer(truth))
-    for row in motion_errors(seq, out):
+    for row in motion_errors(seq, out, config.evaluation.t_max_diff):
         print(json.dumps(row))
     print(json.dumps(trajectory_scores(seq, out, config.evaluation)))
     return 0

@@ -347,6 +347,10 @@ class MonoConfig(Settings):
     # --- keyframes and restarts (odometry.mono, mono.keyframes)
     keyframe_shift: float = setting(0.5, "weight of DSO's point-shift keyframe rule (1 = DSO's weights, 0 = off): a new keyframe also when the weighted RMS point shift, relative to width + height, exceeds 1", NONNEG)
     ba_max_move: float = setting(0.02, "a bundle adjustment that moves the new keyframe's view of the window's points by more than this fraction of the image width (median) is run again without the points it dropped (undone if it moves that far again)", POSITIVE)
+    exposure_probe: int = setting(60, "estimated exposure: at most this many first frames run once before the run (as odometry.exposure_probe, "
+                                  "the monocular loop blind to blur, nothing deblurred or written), stopping once the estimate has settled "
+                                  "(odometry.exposure_settled); the run's keyframes are then deblurred along the estimate, not the guess (0 = off)",
+                                  NONNEG)
     restart_motions: int = setting(9, "frame-to-frame motions kept: after a loss the one of median speed carries the last good pose to the new start, which keeps that speed", AT_LEAST_1)
 
 

@@ -14,8 +14,11 @@ pipeline does not read them). At each new keyframe it prints, over the tracker's
 After the run: the frame-to-frame rotation error and translation direction error against the
 ground truth (medians per block of frames), and the ATE. ``--oracle`` sets each point that joins
 the window to its true inverse depth at its host pixel, brought to the window's scale (the median
-ratio over the points already there). Used for "The collapse traced to the new points' depths" in
-docs/benchmarks.md. Example:
+ratio over the points already there). ``--keyframes`` changes how each new keyframe is deblurred
+(``estimated``: as the run does, with the PSNR of each deblurred keyframe against the generator's
+sharp render printed; ``true-depth``: with the true depth map; ``true-path``: with the true depth
+and the true exposure path; ``sharp``: the sharp render itself). Used for "The collapse traced to
+the new points' depths" and "Where the monocular depths go wrong" in docs/benchmarks.md. Example:
 
     python scripts/mono_depth_probe.py runs/bench_extreme_640x480_seed0 --method mono_n64 --out /tmp/probe
 """
@@ -30,13 +33,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from mbavo_jax.bench_mono import MONO_METHODS, mono_configs, trajectory_scores
-from mbavo_jax.config import TrackerConfig, calibration_of
+from mbavo_jax.config import TrackerConfig, calibration_of, load_config
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.evaluation.associate import associate
 from mbavo_jax.evaluation.poses import pose_matrices
-from mbavo_jax.io import read_tum_trajectory
+from mbavo_jax.deblur import choose_deblur_n, psnr
+from mbavo_jax.geometry import ExposureTrajectory, Pose
+from mbavo_jax.image import quantize16
+from mbavo_jax.io import read_image_gray, read_tum_trajectory
 from mbavo_jax.odometry import run_odometry
 from mbavo_jax.odometry import mono as om
+from mbavo_jax.odometry import rgbd
 
 
 @dataclasses.dataclass
@@ -115,6 +122,36 @@ def oracle_activate(truth: Truth):
     return patched
 
 
+def keyframe_deblurring(seq, how: str):
+    """``RGBDPipeline.deblurred`` that deblurs a keyframe as ``how`` says (module docstring) and
+    prints its PSNR against the sharp render; the frame is found by its image (the pipeline passes
+    the raw image only)."""
+    deblurred = rgbd.RGBDPipeline.deblurred
+    index = {hash(seq[i].image.tobytes()): i for i in range(len(seq))}
+    stamps, starts, ends = seq.exposure_paths
+    pose = lambda v: Pose.from_vector(jnp.asarray(v, jnp.float32))  # noqa: E731
+
+    def patched(self, image, depth, path, readout=0.0):
+        i = index.get(hash(np.asarray(image, np.float32).tobytes()))
+        if i is None:
+            raise SystemExit("mono_depth_probe: a keyframe image is not one of the sequence's frames")
+        frame = seq[i]
+        sharp = read_image_gray(pathlib.Path(seq.path) / "sharp" / f"{frame.timestamp:.6f}.png")
+        if how == "sharp":  # n: what the triptych's blur model uses
+            return quantize16(sharp), choose_deblur_n(depth, self.camera, path, self.config.deblur, readout)
+        if how in ("true-depth", "true-path"):
+            depth = frame.depth
+        if how == "true-path":
+            _, j = associate(np.array([frame.timestamp]), stamps, 1e-3)
+            path = ExposureTrajectory(pose(starts[int(j[0])]), pose(ends[int(j[0])]))
+        out, n = deblurred(self, image, depth, path, readout)
+        print(json.dumps({"deblurred": i, "psnr_blurry": round(psnr(image, sharp), 2), "psnr_deblurred": round(psnr(out, sharp), 2)}),
+              flush=True)
+        return out, n
+
+    return patched
+
+
 def motion_errors(seq, run: pathlib.Path, max_diff: float, block: int = 20) -> list[dict]:
     """Per block of ``block`` frame pairs: the median rotation error (deg) and translation direction
     error (deg) of the run's frame-to-frame motion against the ground truth."""
@@ -138,14 +175,25 @@ def main() -> int:
     ap.add_argument("--method", default="mono_n64", choices=list(MONO_METHODS))
     ap.add_argument("--out", required=True, help="the run's folder")
     ap.add_argument("--oracle", action="store_true", help="points join the window at their true depth (at the window's scale)")
+    ap.add_argument("--keyframes", choices=("run", "estimated", "true-depth", "true-path", "sharp"), default="run",
+                    help="how new keyframes are deblurred (module docstring); run: as the run does, nothing printed")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="a setting changed (repeatable)")
     args = ap.parse_args()
     seq = open_sequence(args.sequence)
     if not seq.has_depth:
         raise SystemExit(f"mono_depth_probe: {args.sequence} has no depth maps to compare with")
+    if args.keyframes != "run" and (seq.exposure_paths is None or not (pathlib.Path(args.sequence) / "sharp").is_dir()):
+        raise SystemExit(f"mono_depth_probe: --keyframes needs {args.sequence}'s sharp/ renders and exposure paths")
     config = mono_configs(TrackerConfig(**calibration_of(seq.meta)), (args.method,))[args.method]
+    typed = load_config(None, args.set)  # checked and typed as `mbavo track --set` does
+    for item in args.set:
+        section, key = item.split("=", 1)[0].split(".", 1)
+        config = config.replace(**{section: {key: getattr(getattr(typed, section), key)}})
     truth = Truth(open_sequence(args.sequence), config.evaluation.t_max_diff)
     if args.oracle:
         om.MonoPipeline._activate = oracle_activate(truth)
+    if args.keyframes != "run":
+        rgbd.RGBDPipeline.deblurred = keyframe_deblurring(open_sequence(args.sequence), args.keyframes)
     out = pathlib.Path(args.out)
     run_odometry(seq, out, config, progress=False, observer=observer(truth))
     for row in motion_errors(seq, out, config.evaluation.t_max_diff):

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from mbavo_jax.bench_mono import trajectory_scores
-from mbavo_jax.config import BenchConfig, EvalConfig, RunConfig
+from mbavo_jax.config import BenchConfig, EvalConfig, RunConfig, load_config
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.geometry import ExposureTrajectory, PinholeCamera, Pose
 from mbavo_jax.io import read_ply, read_tum_trajectory
@@ -137,6 +137,25 @@ def test_python_api_runs_the_monocular_pipeline(seq_dir, tmp_path):
     summary = run_odometry(seq, tmp_path / "run", pipeline=pipeline, progress=False, max_frames=14)
     assert summary["mode"] == "mono" and summary["frames"] == 14 and summary["tracked"] >= 3
     assert pipeline.config.tracker.depth_weight == 0.0
+
+
+@pytest.mark.slow
+def test_the_exposure_probe_starts_a_monocular_run_from_an_estimate_not_the_guess(seq_dir, monkeypatch):
+    """Without exposure times the monocular loop first runs blind over the first frames (nothing
+    deblurred, nothing written) until its estimate settles: the run starts from those samples (true
+    fraction 0.75, the guess 0.5), not from the guess. Off with ``mono.exposure_probe=0`` and for a
+    loop blind to blur."""
+    seq = open_sequence(seq_dir)
+    settings = ["odometry.mode=mono", "odometry.exposure_pair_ratio=1.2"]  # this short path changes speed by less than 1.3x in 6 frames
+    monkeypatch.setattr(MonoPipeline, "deblurred", lambda *a, **k: (_ for _ in ()).throw(AssertionError("the probe deblurred")))
+    pipeline = MonoPipeline(seq.camera, load_config(None, settings))
+    start = pipeline.start_state(seq)
+    true_fraction = PRESETS["strong"]["exposure_ms"] / 1000 * SynthConfig().fps
+    assert start.exposure is not None and start.exposure.count >= 3 and start.tracked == 0 and start.backend is None
+    assert abs(start.exposure.fraction() - true_fraction) < abs(pipeline.config.odometry.exposure_guess - true_fraction), start.exposure
+    assert pipeline.probe_done(start) and start.probed_until < seq[FRAMES - 1].timestamp  # settled: it stopped early
+    assert MonoPipeline(seq.camera, load_config(None, [*settings, "mono.exposure_probe=0"])).start_state(seq).exposure is None
+    assert MonoPipeline(seq.camera, load_config(None, [*settings, "tracker.blur_aware=false"])).start_state(seq).exposure is None
 
 
 # ------------------------------------------------- candidates of a sharp keyframe in blurry frames

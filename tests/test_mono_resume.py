@@ -1,7 +1,8 @@
 """--resume of a monocular run: wherever the run was stopped (initialising, inside a bundle
 adjustment, between a frame's records, between a row and its checkpoint, with a checkpoint every
 few frames), the resumed run equals the uninterrupted one, points.ply included; without a
-checkpoint, one clear line. The kills are in-process, as in tests/test_resume.py."""
+checkpoint, one clear line; stopped inside the exposure probe, nothing written. The kills are
+in-process, as in tests/test_resume.py."""
 
 from __future__ import annotations
 
@@ -22,7 +23,9 @@ from mbavo_jax.synthetic import PRESETS, SynthConfig, generate_sequence
 from tests.test_resume import KillPoint, Killed, arm, assert_same_run
 
 FRAMES = 28
-MONO = RunConfig().replace(odometry=dict(mode="mono"))
+# The kill points count calls of the main loop, which the exposure probe before it (the same steps,
+# nothing written) would shift; the probe's own stop is test_a_stop_inside_the_exposure_probe_writes_nothing.
+MONO = RunConfig().replace(odometry=dict(mode="mono"), mono=dict(exposure_probe=0))
 
 KILL_POINTS = [
     KillPoint("while_initialising", MonoPipeline, "step", 5, after=False),
@@ -86,6 +89,17 @@ def test_sparse_checkpoints_track_the_frames_after_the_last_one_again(seq_dir, u
     assert summary["frames"] == FRAMES - 16  # from frame 16 on
     assert_same_run(uninterrupted, out)
     assert_same_points(uninterrupted, out)
+
+
+def test_a_stop_inside_the_exposure_probe_writes_nothing(seq_dir, tmp_path, monkeypatch):
+    """The probe (the loop run once beforehand, blind to blur) records nothing: a run stopped inside
+    it leaves no row, pose or checkpoint behind, so ``--resume`` starts afresh."""
+    out = tmp_path / "run"
+    with monkeypatch.context() as m:
+        arm(m, KillPoint("inside_the_probe", MonoPipeline, "step", 3, after=False))
+        with pytest.raises(Killed):
+            run_odometry(open_sequence(seq_dir), out, RunConfig().replace(odometry=dict(mode="mono")), progress=False)
+    assert committed_rows(out) == [] and not (out / "trajectory.txt").exists() and not (out / "checkpoint.pkl").exists()
 
 
 def test_resume_without_a_checkpoint_is_one_clear_line(seq_dir, tmp_path, mbavo):

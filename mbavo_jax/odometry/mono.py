@@ -41,7 +41,7 @@ from ..mono.motions import Motions, PoseAt
 from ..mono.window import Window, add_keyframe, add_points, frame_affine, relative_affine, world_points
 from ..tracking import Keyframe, Status, track
 from .inview import ViewStats, in_view_stats
-from .rgbd import RGBDPipeline
+from .rgbd import SETTLED_SAMPLES, RGBDPipeline
 from .state import Fit, FrameOutcome, KeyframeState, NewKeyframe, Pairing, RunState
 
 __all__ = ["MonoPipeline", "MonoState", "PointCloud"]
@@ -128,10 +128,15 @@ class MonoPipeline(RGBDPipeline):
         config = self.config.replace(tracker=dict(depth_weight=0.0), deblur=dict(regularization=self.config.mono.deblur_regularization))
         object.__setattr__(self, "config", config)
 
-    def start_state(self, seq, progress: bool = False) -> RunState:
-        """A fresh state: the RGB-D pipeline's exposure probe is not run (the monocular start has no
-        depth to probe with before the two-view initialisation)."""
-        return RunState()
+    def probe_frames(self) -> int:
+        """The most frames the exposure probe runs (``mono.exposure_probe``): the monocular loop,
+        blind to blur and deblurring nothing, pairs frames only once its window holds
+        ``SAMPLING_KEYFRAMES`` keyframes, and a pair needs two speeds far enough apart."""
+        return self.config.mono.exposure_probe
+
+    def probe_done(self, state: RunState) -> bool:
+        """Whether the exposure probe may stop: its estimate has settled (``odometry.exposure_settled``)."""
+        return self.estimate(state).settled(SETTLED_SAMPLES, self.config.odometry.exposure_settled)
 
     def step(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
         t0 = time.perf_counter()
@@ -181,7 +186,7 @@ class MonoPipeline(RGBDPipeline):
         u, v = np.rint(two_view.pixels).astype(int).T
         sparse[v, u] = 1.0 / np.maximum(two_view.idepth, 1e-6)
         depth = filled_depth(sparse)
-        if not (cfg.tracker.blur_aware and cfg.odometry.deblur_first_keyframe and np.isfinite(depth).all()
+        if not (cfg.tracker.blur_aware and cfg.odometry.deblur_first_keyframe and not self.probe and np.isfinite(depth).all()
                 and exposure_blur_px(depth, self.camera, path, readout=rho)[0] > cfg.odometry.deblur_min_blur_px):
             return quantize16(raw), False
         return self.deblurred(raw, depth, path, rho)[0], True

@@ -113,13 +113,13 @@ class RGBDPipeline:
         return state.exposure or ExposureEstimate(odo.exposure_guess, odo.exposure_window)
 
     def start_state(self, seq, progress: bool = False) -> RunState:
-        """The loop's first state. With an estimated exposure, the first ``odometry.exposure_probe``
-        frames are run once beforehand (nothing written; tracked blind to blur, one pose a frame, no
-        keyframe deblurred: their pairs need only their poses and speeds) and the run starts from the
-        pairs' samples instead of the uninformative guess: its first keyframes are then deblurred along an
-        estimated exposure, and those frames are not paired again. Deterministic, so ``--resume``
-        repeats it."""
-        k = min(self.config.odometry.exposure_probe, len(seq))
+        """The loop's first state. With an estimated exposure, the first :meth:`probe_frames` frames
+        (fewer once :meth:`probe_done`) are run once beforehand (nothing written; tracked blind to
+        blur, one pose a frame, no keyframe deblurred: their pairs need only their poses and speeds)
+        and the run starts from the pairs' samples instead of the uninformative guess: its first
+        keyframes are then deblurred along an estimated exposure, and those frames are not paired
+        again. Deterministic, so ``--resume`` repeats it."""
+        k = min(self.probe_frames(), len(seq))
         if k < 2 or self.exposure_mode(seq[0]) != "estimate":
             return RunState()
         probe, state = dataclasses.replace(self, probe=True), RunState()
@@ -127,8 +127,19 @@ class RGBDPipeline:
             for index in range(k):
                 state, _ = probe.step(state, seq[index], index)
                 pbar.update()
+                if self.probe_done(state):
+                    k = index + 1
+                    break
         est = self.estimate(state)
         return RunState(exposure=est, probed_until=seq[k - 1].timestamp) if est.count else RunState()
+
+    def probe_frames(self) -> int:
+        """The most frames the exposure probe runs (``odometry.exposure_probe``)."""
+        return self.config.odometry.exposure_probe
+
+    def probe_done(self, state: RunState) -> bool:
+        """Whether the exposure probe may stop before ``probe_frames``: never (its frames are few)."""
+        return False
 
     def exposure_of(self, state: RunState, frame, frame_dt: float) -> float:
         """The frame's exposure time (s): recorded in the data (else ``odometry.exposure_s``) when

@@ -122,11 +122,11 @@ def oracle_activate(truth: Truth):
     return patched
 
 
-def keyframe_deblurring(seq, how: str):
+def keyframe_deblurring(truth: Truth, how: str):
     """``RGBDPipeline.deblurred`` that deblurs a keyframe as ``how`` says (module docstring) and
     prints its PSNR against the sharp render; the frame is found by its image (the pipeline passes
-    the raw image only)."""
-    deblurred = rgbd.RGBDPipeline.deblurred
+    the raw image only), its depth map and exposure path by its stamp as ``truth`` matches them."""
+    deblurred, seq = rgbd.RGBDPipeline.deblurred, truth.seq
     index = {hash(seq[i].image.tobytes()): i for i in range(len(seq))}
     stamps, starts, ends = seq.exposure_paths
     pose = lambda v: Pose.from_vector(jnp.asarray(v, jnp.float32))  # noqa: E731
@@ -140,9 +140,9 @@ def keyframe_deblurring(seq, how: str):
         if how == "sharp":  # n: what the triptych's blur model uses
             return quantize16(sharp), choose_deblur_n(depth, self.camera, path, self.config.deblur, readout)
         if how in ("true-depth", "true-path"):
-            depth = frame.depth
+            depth = truth.depth(frame.timestamp)
         if how == "true-path":
-            _, j = associate(np.array([frame.timestamp]), stamps, 1e-3)
+            _, j = associate(np.array([frame.timestamp]), stamps, truth.max_diff)
             path = ExposureTrajectory(pose(starts[int(j[0])]), pose(ends[int(j[0])]))
         out, n = deblurred(self, image, depth, path, readout)
         print(json.dumps({"deblurred": i, "psnr_blurry": round(psnr(image, sharp), 2), "psnr_deblurred": round(psnr(out, sharp), 2)}),
@@ -193,7 +193,7 @@ def main() -> int:
     if args.oracle:
         om.MonoPipeline._activate = oracle_activate(truth)
     if args.keyframes != "run":
-        rgbd.RGBDPipeline.deblurred = keyframe_deblurring(open_sequence(args.sequence), args.keyframes)
+        rgbd.RGBDPipeline.deblurred = keyframe_deblurring(truth, args.keyframes)
     out = pathlib.Path(args.out)
     run_odometry(seq, out, config, progress=False, observer=observer(truth))
     for row in motion_errors(seq, out, config.evaluation.t_max_diff):

@@ -43,10 +43,11 @@ def _bandwidth_gb_s() -> float:
 def _lm_step_bytes(config) -> int:
     """Bytes of keyframe texels one LM step reads: every level's residual pixels x its n x 4 x 4 B."""
     from mbavo_jax.tracking.points import PATTERN
+    from mbavo_jax.tracking.tracker import _n_for_level
 
     total = 0
     for level in range(config.levels):
-        n = config.n if config.n_per_level == "same" else max(config.n_coarse_min, config.n >> level)
+        n = _n_for_level(config, float("nan"), level)  # fixed n: the predicted blur is not read
         total += config.points[level] * len(PATTERN) * n * 4 * 4
     return total
 

@@ -21,7 +21,9 @@ from mbavo_jax.synthetic import SynthConfig, generate_sequence
 from mbavo_jax.synthetic.generator import PRESETS
 from mbavo_jax.config import TrackerConfig
 from mbavo_jax.tracking import Keyframe, Status, choose_n, compiled_programs, constant_velocity_guess, exposure_from_velocity, track
-from mbavo_jax.tracking.level import LINEAR_SOLVER, residual_pixels
+from mbavo_jax.geometry.trajectory import RowClock
+from mbavo_jax.tracking.level import LINEAR_SOLVER, LevelInputs, residual_pixels, solve_level
+from mbavo_jax.tracking.tracker import _level_settings
 from mbavo_jax.tracking.residuals import LevelProblem, make_residual_fn, residuals_and_jacobian
 
 SMALL = TrackerConfig(levels=3, points=(192, 128, 64), cell=(10, 7, 5), response_gamma=2.2, max_steps=(10, 12, 20))
@@ -371,3 +373,22 @@ def test_depth_term_pins_the_mid_pose(strong):
             ep[use].append(endpoint_error(kf, r.trajectory, gt))
     assert np.mean(err[True]) < 0.7 * np.mean(err[False]), err
     assert np.mean(ep[True]) < 1.1 * np.mean(ep[False]), ep
+
+
+@pytest.mark.slow
+def test_a_level_reports_the_residuals_at_the_point_it_returns(strong):
+    """A level's rms and valid count come from the solver's last accepted linearisation: they equal a
+    fresh residual pass at the path and brightness it returns, also when the step budget stops it
+    mid-way (a lagging record would be a step behind)."""
+    config = dataclasses.replace(SMALL, outlier_sigma=0.0, max_steps=(3, 3, 3))
+    kf, frame, init, _ = case(strong, 2, config)
+    image = jnp.asarray(frame ** 2.2)
+    inputs = LevelInputs(kf.images[0], kf.cameras[0], image, *kf.points[0].on_device, init, jnp.zeros(2, jnp.float32),
+                         RowClock.create(0.0, kf.cameras[0].height, 0))
+    res = solve_level(inputs, _level_settings(config, 0, 8), None, None)
+    assert int(res.steps) == 3 and float(res.rms) < 0.9 * float(res.rms_init)
+    rays, d, obs, mask, _ = residual_pixels(kf.cameras[0], image, *kf.points[0].on_device, init)
+    prob = LevelProblem(kf.images[0], kf.cameras[0], res.trajectory, rays, d, obs, mask, 8, config.jacobian)
+    r, _, valid = residuals_and_jacobian(jnp.concatenate([jnp.zeros(12, jnp.float32), res.affine_ab]), prob, False)
+    assert int(valid.sum()) == int(res.valid)
+    np.testing.assert_allclose(float(res.rms), float(jnp.sqrt(jnp.sum(r * r) / valid.sum().astype(r.dtype))), rtol=1e-4)

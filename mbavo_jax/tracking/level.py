@@ -199,12 +199,14 @@ def reject_outlier_patches(problem: LevelProblem, r0: Float[Array, " R"], v0: Bo
     return eqx.tree_at(lambda p: p.mask, problem, problem.mask & jnp.repeat(keep, npat))
 
 
-_RESIDUAL = make_residual_fn()
+_RESIDUAL = make_residual_fn(with_valid=True)
 
 
-def photometric_residuals(y, problem: LevelProblem, huber) -> Float[Array, " R"]:
-    """The blur model's photometric residuals at y, square-rooted Huber (custom JVP: J @ ẏ)."""
-    return robust(_RESIDUAL(y, problem), huber)
+def photometric_residuals(y, problem: LevelProblem, huber) -> tuple[Float[Array, " R"], tuple]:
+    """The blur model's photometric residuals at y, square-rooted Huber (custom JVP: J @ ẏ), and the
+    plain residuals with their validity."""
+    r, valid = _RESIDUAL(y, problem)
+    return robust(r, huber), (r, valid)
 
 
 def depth_residuals_block(traj: ExposurePath, camera: PinholeCamera, term: DepthTerm) -> Float[Array, " M"]:
@@ -234,17 +236,19 @@ def curvature_residuals(path: SplineTrajectory, prior: CurvaturePrior) -> Float[
 
 
 def objective(z, obj: LevelObjective):
-    """The level's least-squares function: the residual blocks stacked."""
+    """The level's least-squares function: the residual blocks stacked, and (aux) the plain
+    photometric residuals with their validity."""
     y = obj.param.expand(z)
     traj = obj.problem.anchor.plus(y[: obj.param.dof])
-    parts = [photometric_residuals(y, obj.problem, obj.huber)]
+    photometric, aux = photometric_residuals(y, obj.problem, obj.huber)
+    parts = [photometric]
     if obj.depth is not None:
         parts.append(depth_residuals_block(traj, obj.problem.camera, obj.depth))
     if obj.prior is not None:
         parts.append(exposure_prior_residuals(traj, obj.prior))
     if obj.curvature is not None:
         parts.append(curvature_residuals(traj, obj.curvature))
-    return jnp.concatenate(parts) if len(parts) > 1 else parts[0]
+    return (jnp.concatenate(parts) if len(parts) > 1 else parts[0]), aux
 
 
 def make_prior(level: LevelInputs, problem: LevelProblem, blur0, sigma_intensity, min_rad, rel) -> ExposurePrior:
@@ -258,10 +262,10 @@ def make_prior(level: LevelInputs, problem: LevelProblem, blur0, sigma_intensity
     return ExposurePrior(blur0, scale, weight)
 
 
-def _summary(problem: LevelProblem, y, r0: Float[Array, " R"], valid0: Bool[Array, " R"]) -> tuple:
-    """(rms, rms at the start (residuals r0, valid0), nrms = rms / contrast of the observed pixels,
-    valid residuals); residuals outside the problem's mask do not count."""
-    r, _, valid = residuals_and_jacobian(y, problem, with_jacobian=False)
+def _summary(problem: LevelProblem, r: Float[Array, " R"], valid: Bool[Array, " R"], r0: Float[Array, " R"],
+             valid0: Bool[Array, " R"]) -> tuple:
+    """(rms of the residuals r (valid where ``valid``), rms at the start (r0, valid0), nrms = rms /
+    contrast of the observed pixels, valid residuals); residuals outside the problem's mask do not count."""
     nvalid = valid.sum()
     rms = jnp.sqrt(jnp.sum(r * r) / count(valid, r.dtype))
     obs_mean = masked_mean(problem.observed, valid)
@@ -291,9 +295,9 @@ def solve_level(level: LevelInputs, settings: LevelSettings, prior: tuple | None
         curvature = CurvaturePrior(prior_term.scale, prior[1] / settings.curvature_sigma * jnp.sqrt(count(problem.mask, d.dtype)))
     obj = LevelObjective(problem, param, settings.huber, prior_term, depth, curvature)
     solver = optx.LevenbergMarquardt(rtol=settings.rtol, atol=settings.atol, norm=optx.rms_norm, linear_solver=lx.QR() if curvature is not None else LINEAR_SOLVER)
-    sol = optx.least_squares(objective, solver, z0, args=obj, max_steps=settings.max_steps, throw=False)
+    sol = optx.least_squares(objective, solver, z0, args=obj, has_aux=True, max_steps=settings.max_steps, throw=False)
     y = param.expand(sol.value)
-    rms, rms0, nrms, nvalid = _summary(problem, y, r0, valid0)
+    rms, rms0, nrms, nvalid = _summary(problem, *sol.state.aux, r0, valid0)  # the aux of the last accepted step, at sol.value
     k = param.dof
     traj = level.anchor.plus(y[:k]).normalized()
     converged = sol.result == optx.RESULTS.successful

@@ -29,6 +29,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..blur import blend, per_pixel_poses, synthesize, virtual_pq, virtual_pq_table, virtual_sample
@@ -189,21 +190,24 @@ def residuals_and_jacobian(y: Float[Array, " Y"], problem: LevelProblem, with_ja
     return r, jnp.where(valid[:, None], J, 0.0), valid
 
 
-def make_residual_fn():
-    """``f(y, problem) -> r`` with a custom JVP ``J @ ẏ`` (J from the problem's Jacobian path)."""
+def make_residual_fn(with_valid: bool = False):
+    """``f(y, problem) -> r`` with a custom JVP ``J @ ẏ`` (J from the problem's Jacobian path); with
+    ``with_valid``, ``(r, valid)`` (the mask has no tangent), so a solver's last linearisation also
+    gives the residuals' validity without another pass."""
 
     @jax.custom_jvp
     def f(y, problem):
-        return residuals_and_jacobian(y, problem, with_jacobian=False)[0]
+        r, _, valid = residuals_and_jacobian(y, problem, with_jacobian=False)
+        return r, valid
 
     @f.defjvp
     def f_jvp(primals, tangents):
         y, problem = primals
         y_dot, _ = tangents  # the problem's data is not differentiated
-        r, J, _ = residuals_and_jacobian(y, problem, with_jacobian=True)
-        return r, J @ y_dot
+        r, J, valid = residuals_and_jacobian(y, problem, with_jacobian=True)
+        return (r, valid), (J @ y_dot, np.zeros(valid.shape, jax.dtypes.float0))
 
-    return f
+    return f if with_valid else (lambda y, problem: f(y, problem)[0])
 
 
 def robust(r, k):

@@ -100,10 +100,9 @@ def _M_analytic(problem: LevelProblem, y12):
 
 
 def chain_rows(G: Float[Array, "n R j"], M: Float[Array, "B n j k"], rows: Int[Array, " R"]) -> Float[Array, "R k"]:
-    """Σ_i g_i(x) · M_{b(x),i} for every residual x (one bucket: a single contraction, as Jᵀ = Mᵀ Gᵀ
-    over (i, j) so that the samples' rows are written in the product's layout, not copied into it)."""
+    """Σ_i g_i(x) · M_{b(x),i} for every residual x (one bucket: a single contraction)."""
     if M.shape[0] == 1:
-        return jnp.einsum("njr,njk->kr", jnp.transpose(G, (0, 2, 1)), M[0]).T
+        return jnp.einsum("nrj,njk->rk", G, M[0])
     return jax.vmap(lambda g, b: jnp.einsum("nj,njk->k", g, M[b]), in_axes=(1, 0))(G, rows)
 
 

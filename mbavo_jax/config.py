@@ -150,6 +150,10 @@ class TrackerConfig(Settings):
                               "four control poses; its pose Jacobian always by autodiff)", choices=("linear", "cubic"))
     huber: float = setting(9.0 / 255.0, "Huber threshold on [0, 1] intensities (9/255)", POSITIVE)
     max_steps: tuple[int, ...] = setting((8, 10, 12, 20), "Levenberg-Marquardt steps per level (fine -> coarse)", AT_LEAST_1)
+    fresh_jacobian_levels: int = setting(1, "the coarsest this many pyramid levels recompute the photometric Jacobian at every LM "
+                                         "step (they capture the motion away from the prediction); the finer ones, when blur-aware "
+                                         "(n > 1), compute it once, at their start, and their steps evaluate residuals only (the chord "
+                                         "method; robust weights, affine columns and the other blocks stay exact); >= levels: all recompute", NONNEG)
     rtol: float = setting(1e-3, "LM relative tolerance (optimistix, RMS norm)", POSITIVE)
     atol: float = setting(1e-4, "LM absolute tolerance (optimistix, RMS norm)", POSITIVE)
     outlier_sigma: float = setting(2.5, "drop patches whose cost exceeds mean + k std (all but the coarsest level; 0 = off)", NONNEG)

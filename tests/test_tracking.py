@@ -24,7 +24,7 @@ from mbavo_jax.tracking import Keyframe, Status, choose_n, compiled_programs, co
 from mbavo_jax.geometry.trajectory import RowClock
 from mbavo_jax.tracking.level import LINEAR_SOLVER, LevelInputs, residual_pixels, solve_level
 from mbavo_jax.tracking.tracker import _level_settings
-from mbavo_jax.tracking.residuals import LevelProblem, make_residual_fn, residuals_and_jacobian
+from mbavo_jax.tracking.residuals import FrozenJacobian, LevelProblem, make_frozen_residual_fn, make_residual_fn, residuals_and_jacobian
 
 SMALL = TrackerConfig(levels=3, points=(192, 128, 64), cell=(10, 7, 5), response_gamma=2.2, max_steps=(10, 12, 20))
 
@@ -108,6 +108,45 @@ def test_structured_jacobians_match_plain_autodiff(strong):
             np.testing.assert_allclose(jax.vmap(lin)(jnp.eye(14)).T, J, atol=1e-10)
             ref = J if ref is None else ref
             np.testing.assert_allclose(J, ref, atol=1e-8, rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_a_frozen_jacobian_is_the_levels_start_one_with_exact_affine_columns(strong):
+    """The chord method's linearisation (``make_frozen_residual_fn``): at the level's start y₀ it is
+    the Jacobian there; at another y its path columns are y₀'s scaled by the gain e^(a − a₀), its
+    affine columns those of the Jacobian at y, and its residuals those at y (float64)."""
+    with jax.enable_x64(True):
+        prob = _problem(strong, "tangent", dtype=jnp.float64)
+        y0 = jnp.asarray([0.0] * 12 + [0.02, 0.003], jnp.float64)
+        y1 = y0 + jnp.asarray(np.random.default_rng(1).normal(scale=[2e-3] * 12 + [0.05, 0.01]), jnp.float64)
+        _, J0, _ = residuals_and_jacobian(y0, prob, True)
+        r1, J1, valid1 = residuals_and_jacobian(y1, prob, True)
+        frozen, f = FrozenJacobian(J0[:, :12], y0[12]), make_frozen_residual_fn()
+        for y, want in ((y0, J0), (y1, None)):
+            (r, valid), lin = jax.linearize(lambda yy: f(yy, prob, frozen), y)
+            J = jax.vmap(lambda e: lin(e)[0])(jnp.eye(14)).T
+            if want is not None:
+                np.testing.assert_allclose(J, want, atol=1e-10)
+        np.testing.assert_allclose(r, r1, atol=1e-12)
+        np.testing.assert_array_equal(valid, valid1)
+        np.testing.assert_allclose(J[:, 12:], J1[:, 12:], atol=1e-10)
+        both = np.asarray(valid1 & (jnp.abs(J0[:, :12]).sum(1) > 0))
+        np.testing.assert_allclose(J[both, :12], np.exp(float(y1[12] - y0[12])) * J0[both, :12], rtol=1e-10, atol=1e-12)
+        assert np.abs(J[both, :12] - J1[both, :12]).max() > 1e-3 * np.abs(J1[both, :12]).max()  # frozen, not recomputed
+
+
+@pytest.mark.slow
+def test_a_frozen_jacobian_tracks_as_the_per_step_one(strong):
+    """Levels that keep their start's photometric Jacobian (all but the coarsest, ``tracker.fresh_jacobian_levels``,
+    the default) land where levels that recompute it at every step do, on strong blur."""
+    for k in (1, 3, 5):
+        errs = {}
+        for name, cfg in (("frozen", SMALL), ("per_step", dataclasses.replace(SMALL, fresh_jacobian_levels=SMALL.levels))):
+            kf, frame, init, gt = case(strong, k, cfg)
+            traj, status, diag = track(kf, frame, init, cfg)
+            assert status.ok, (name, k, status, diag)
+            errs[name] = endpoint_error(kf, traj, gt)
+        assert errs["frozen"] < 0.3 and errs["frozen"] <= 1.2 * errs["per_step"] + 0.02, (k, errs)
 
 
 @pytest.mark.slow

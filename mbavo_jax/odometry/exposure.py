@@ -41,8 +41,9 @@ def prior_off(config: TrackerConfig) -> TrackerConfig:
 @functools.lru_cache(maxsize=16)
 def pair_tracker(config: TrackerConfig, levels: int) -> TrackerConfig:
     """``config`` as a pair's frames are tracked against each other: without the exposure-motion
-    prior, on at most ``levels`` finest pyramid levels; one object per config."""
-    return dataclasses.replace(prior_off(config), levels=min(levels, config.levels))
+    prior, on at most ``levels`` finest pyramid levels, the Jacobian recomputed at every step (the
+    blur length it measures starts from a guess, where a frozen one would be taken); one object per config."""
+    return dataclasses.replace(prior_off(config), levels=min(levels, config.levels), fresh_jacobian_levels=config.levels)
 
 
 @functools.lru_cache(maxsize=16)

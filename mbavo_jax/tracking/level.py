@@ -26,7 +26,7 @@ from ..geometry.trajectory import ExposureTrajectory, RowClock
 from ..masked import count, masked_mean
 from .geometric import depth_residuals
 from .points import PATTERN
-from .residuals import LevelProblem, make_residual_fn, residuals_and_jacobian, robust
+from .residuals import FrozenJacobian, LevelProblem, make_frozen_residual_fn, make_residual_fn, residuals_and_jacobian, robust
 
 __all__ = ["LevelInputs", "LevelSettings", "Parametrization", "ExposurePrior", "DepthTerm", "LevelObjective", "LevelResult",
            "CurvaturePrior", "control_steps", "curvature_residuals", "residual_pixels", "photometric_residuals", "depth_residuals_block", "exposure_prior_residuals", "solve_level",
@@ -78,6 +78,7 @@ class LevelSettings(eqx.Module):
     use_outliers: bool = eqx.field(static=True)
     rolling: bool = eqx.field(static=True, default=False)  # per-row virtual poses (readout fraction > 0)
     curved: bool = eqx.field(static=True, default=False)  # a cubic path's curvature prior is on
+    frozen: bool = eqx.field(static=True, default=False)  # the photometric Jacobian computed once, at the level's start
 
 
 class Parametrization(eqx.Module):
@@ -145,6 +146,7 @@ class LevelObjective(eqx.Module):
     prior: ExposurePrior | None
     depth: DepthTerm | None
     curvature: CurvaturePrior | None = None
+    frozen: FrozenJacobian | None = None  # the photometric Jacobian at the level's start (None: recomputed at every step)
 
 
 class LevelResult(eqx.Module):
@@ -200,12 +202,13 @@ def reject_outlier_patches(problem: LevelProblem, r0: Float[Array, " R"], v0: Bo
 
 
 _RESIDUAL = make_residual_fn(with_valid=True)
+_FROZEN_RESIDUAL = make_frozen_residual_fn()
 
 
-def photometric_residuals(y, problem: LevelProblem, huber) -> tuple[Float[Array, " R"], tuple]:
-    """The blur model's photometric residuals at y, square-rooted Huber (custom JVP: J @ ẏ), and the
-    plain residuals with their validity."""
-    r, valid = _RESIDUAL(y, problem)
+def photometric_residuals(y, problem: LevelProblem, huber, frozen: FrozenJacobian | None = None) -> tuple[Float[Array, " R"], tuple]:
+    """The blur model's photometric residuals at y, square-rooted Huber (custom JVP: J @ ẏ, with J
+    ``frozen`` at the level's start when given), and the plain residuals with their validity."""
+    r, valid = _RESIDUAL(y, problem) if frozen is None else _FROZEN_RESIDUAL(y, problem, frozen)
     return robust(r, huber), (r, valid)
 
 
@@ -240,7 +243,7 @@ def objective(z, obj: LevelObjective):
     photometric residuals with their validity."""
     y = obj.param.expand(z)
     traj = obj.problem.anchor.plus(y[: obj.param.dof])
-    photometric, aux = photometric_residuals(y, obj.problem, obj.huber)
+    photometric, aux = photometric_residuals(y, obj.problem, obj.huber, obj.frozen)
     parts = [photometric]
     if obj.depth is not None:
         parts.append(depth_residuals_block(traj, obj.problem.camera, obj.depth))
@@ -286,19 +289,21 @@ def solve_level(level: LevelInputs, settings: LevelSettings, prior: tuple | None
                            times, rows if settings.rolling else None)
     param = Parametrization(level.affine_ab, settings.rigid, settings.affine, level.anchor.dof)
     z0 = jnp.zeros(param.size(), level.ref_image.dtype)
-    r0, _, valid0 = residuals_and_jacobian(param.expand(z0), problem, with_jacobian=False)
+    y0 = param.expand(z0)
+    r0, J0, valid0 = residuals_and_jacobian(y0, problem, with_jacobian=settings.frozen)
     if settings.use_outliers:
         problem = reject_outlier_patches(problem, r0, valid0, settings.outlier_sigma)
     prior_term = None if prior is None else make_prior(level, problem, *prior)
     curvature = None
     if prior is not None and isinstance(level.anchor, SplineTrajectory) and settings.curved:
         curvature = CurvaturePrior(prior_term.scale, prior[1] / settings.curvature_sigma * jnp.sqrt(count(problem.mask, d.dtype)))
-    obj = LevelObjective(problem, param, settings.huber, prior_term, depth, curvature)
+    k = param.dof
+    frozen = FrozenJacobian(J0[:, :k], y0[k]) if settings.frozen else None
+    obj = LevelObjective(problem, param, settings.huber, prior_term, depth, curvature, frozen)
     solver = optx.LevenbergMarquardt(rtol=settings.rtol, atol=settings.atol, norm=optx.rms_norm, linear_solver=lx.QR() if curvature is not None else LINEAR_SOLVER)
     sol = optx.least_squares(objective, solver, z0, args=obj, has_aux=True, max_steps=settings.max_steps, throw=False)
     y = param.expand(sol.value)
     rms, rms0, nrms, nvalid = _summary(problem, *sol.state.aux, r0, valid0)  # the aux of the last accepted step, at sol.value
-    k = param.dof
     traj = level.anchor.plus(y[:k]).normalized()
     converged = sol.result == optx.RESULTS.successful
     return LevelResult(traj, y[k : k + 2], rms, rms0, nrms, nvalid, converged, sol.stats["num_steps"])

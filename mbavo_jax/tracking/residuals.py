@@ -17,7 +17,9 @@ Eqs. 85, 78-84, 56-58, 48-49, 3-11) and ``tangent`` (the default): g_i by a loca
 (t, ω) of each virtual camera, 6 numbers per sample from the plane point alone
 (:func:`_sample_tangent`), and M_i the analytic one mapped to (t, ω) once per virtual pose
 (:func:`tangent_rows`). The residual function carries a ``custom_jvp`` that returns J @ ẏ, so
-``jax.linearize`` inside optimistix computes J once per step.
+``jax.linearize`` inside optimistix computes J once per step. The finer blur-aware levels compute J once,
+at their start, and their steps reuse it (:func:`make_frozen_residual_fn`, the chord method;
+``tracker.fresh_jacobian_levels``).
 
 A cubic exposure path (``geometry.spline.SplineTrajectory``) has k = 24 unknowns instead of 12
 (y = [Δ (k), a, b]); its M has no closed form here and is always ``jax.jacfwd`` of the pose table,
@@ -39,7 +41,7 @@ from ..geometry.spline import SplineTrajectory
 from ..geometry.trajectory import ExposureTrajectory, virtual_times
 from ..paper import jacobians as pj
 
-__all__ = ["LevelProblem", "residuals_and_jacobian", "make_residual_fn", "robust"]
+__all__ = ["LevelProblem", "FrozenJacobian", "residuals_and_jacobian", "make_residual_fn", "make_frozen_residual_fn", "robust"]
 
 
 class LevelProblem(eqx.Module):
@@ -208,6 +210,45 @@ def make_residual_fn(with_valid: bool = False):
         return (r, valid), (J @ y_dot, np.zeros(valid.shape, jax.dtypes.float0))
 
     return f if with_valid else (lambda y, problem: f(y, problem)[0])
+
+
+class FrozenJacobian(eqx.Module):
+    """The photometric Jacobian's path columns ∂r/∂y_k at a level's start y₀ (affine a₀ there),
+    reused at every LM step of the level (the chord method: :func:`make_frozen_residual_fn`)."""
+
+    path: Float[Array, "R k"]
+    a0: Float[Array, ""]
+
+    def jvp(self, y: Float[Array, " Y"], r: Float[Array, " R"], valid: Bool[Array, " R"], problem: LevelProblem,
+            y_dot: Float[Array, " Y"]) -> Float[Array, " R"]:
+        """J @ ẏ at y (residuals r, valid where ``valid``; 0 elsewhere): the path columns from y₀
+        rescaled by e^(a − a₀) (they are proportional to the gain), the affine ones exact (∂r/∂a =
+        e^a·synth = r − b + B, ∂r/∂b = 1). The coefficients are masked, not only the product, so that
+        the transpose the linear solver takes stays finite where B is not (NaN pixels)."""
+        k = self.path.shape[1]
+        a, b = y[k], y[k + 1]
+        d_a = jnp.where(valid, r - b + problem.observed, 0.0)
+        return jnp.where(valid, jnp.exp(a - self.a0) * (self.path @ y_dot[:k]) + d_a * y_dot[k] + y_dot[k + 1], 0.0)
+
+
+def make_frozen_residual_fn():
+    """``f(y, problem, frozen) -> (r, valid)`` as :func:`make_residual_fn` with ``with_valid``, but
+    its JVP uses the :class:`FrozenJacobian` ``frozen``: one forward pass over the samples per LM
+    step instead of the samples' derivatives."""
+
+    @jax.custom_jvp
+    def f(y, problem, frozen):
+        r, _, valid = residuals_and_jacobian(y, problem, with_jacobian=False)
+        return r, valid
+
+    @f.defjvp
+    def f_jvp(primals, tangents):
+        y, problem, frozen = primals
+        y_dot = tangents[0]  # the problem's data and the frozen Jacobian are not differentiated
+        r, _, valid = residuals_and_jacobian(y, problem, with_jacobian=False)
+        return (r, valid), (frozen.jvp(y, r, valid, problem, y_dot), np.zeros(valid.shape, jax.dtypes.float0))
+
+    return f
 
 
 def robust(r, k):

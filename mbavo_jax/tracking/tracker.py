@@ -173,7 +173,7 @@ def _level_settings(config: TrackerConfig, level: int, n: int, rolling: bool = F
                          f(max(config.curvature_prior_rad, 1e-12)), n=n, jacobian=config.jacobian,
                          max_steps=config.max_steps[level], rigid=not config.blur_aware, affine=config.affine,
                          use_outliers=level < config.levels - 1 and config.outlier_sigma > 0, rolling=rolling,
-                         curved=config.trajectory == "cubic" and config.curvature_prior_rad > 0)
+                         curved=config.trajectory == "cubic" and config.curvature_prior_rad > 0, frozen=n > 1 and level < config.levels - config.fresh_jacobian_levels)
 
 
 @functools.lru_cache(maxsize=256)
@@ -269,15 +269,24 @@ def _attempt(name, keyframe, pyr, init, config, depth_pyr, blur0=None, readout: 
     return _Attempt(name, traj, ab, per_level, _status(per_level, config))
 
 
+@functools.lru_cache(maxsize=16)
+def _per_step(config: TrackerConfig) -> TrackerConfig:
+    """``config`` with the photometric Jacobian recomputed at every LM step on every level (one object per config)."""
+    return dataclasses.replace(config, fresh_jacobian_levels=config.levels)
+
+
 def _search(first: _Attempt, keyframe, pyr, init, config: TrackerConfig, depth_pyr, readout: float = 0.0) -> tuple[_Attempt, int]:
     """DSO-style: when the first solve is poor, try the motion hypotheses until one is good; the
-    best usable attempt wins. Returns it and the number of attempts."""
+    best usable attempt wins. Returns it and the number of attempts. The search recomputes the
+    Jacobian at every step (far starts are where a frozen one is least exact) and, when the first
+    solve froze it on some levels, first solves the initial guess again that way."""
     if not config.hypotheses or (first.status.ok and first.per_level[-1]["nrms"] <= config.good_nrms):
         return first, 1
-    best, tried = first, 1
-    for name, hyp in motion_hypotheses(init, config.hypothesis_rotation_deg):
+    best, tried, fresh = first, 1, _per_step(config)
+    again = [("initial guess, per-step Jacobian", init)] if config.fresh_jacobian_levels < config.levels else []
+    for name, hyp in [*again, *motion_hypotheses(init, config.hypothesis_rotation_deg)]:
         tried += 1
-        a = _attempt(name, keyframe, pyr, hyp, config, depth_pyr, readout=readout)
+        a = _attempt(name, keyframe, pyr, hyp, fresh, depth_pyr, readout=readout)
         if a.score < best.score:
             best = a
         if a.status.ok and a.score <= config.good_nrms:

@@ -336,6 +336,9 @@ class MonoConfig(Settings):
     ba_outlier: float = setting(12.0 / 255.0, "a point-keyframe pattern whose RMS residual exceeds this is an outlier", POSITIVE)
     ba_lambda: float = setting(1e-4, "initial Levenberg-Marquardt damping (relative to the diagonal)", POSITIVE)
     deblur_regularization: float = setting(0.1, "the keyframe deblurring's gradient penalty in monocular runs (in place of deblur.regularization): its depth is the window's points filled in between them, so its blur kernels are less sure than a depth sensor's and a weak penalty rings, which makes the keyframe's new points outliers in the bundle adjustment", NONNEG)
+    fresh_jacobian_levels: int = setting(4, "the tracker's levels that recompute the photometric Jacobian at every LM step in monocular runs, in place of "
+                                         "tracker.fresh_jacobian_levels (>= tracker.levels: all, the per-step Jacobian; tracking is a small part of "
+                                         "a monocular frame's time)", NONNEG)
     # --- candidate (immature) points (mono.candidates)
     candidates: int = setting(1500, "candidate points selected on each new keyframe (DSO's 1500)", AT_LEAST_1)
     trace_outlier: float = setting(16.0 / 255.0, "a candidate whose best match along its epipolar line has a larger RMS pattern residual is an outlier", POSITIVE)

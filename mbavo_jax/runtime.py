@@ -134,19 +134,17 @@ def memory_maps() -> tuple[int, int] | None:
         return None
 
 
-def make_room_for_programs(config: RuntimeConfig = RuntimeConfig(), quiet: bool = False) -> bool:
+def make_room_for_programs(config: RuntimeConfig = RuntimeConfig()) -> str:
     """Release every compiled program this process holds (``jax.clear_caches``) when its memory maps
-    are past ``runtime.release_programs_at`` of the system's limit, with one note on stderr; returns
-    whether it did. XLA maps each program's code apart (a monocular run at one image size holds about
-    10,000 maps), and a process past the limit dies in LLVM ("Cannot allocate memory"). Released
-    programs come back from the compilation cache when used again."""
+    are past ``runtime.release_programs_at`` of the system's limit; returns a one-line note saying so
+    ('' when nothing was released). XLA maps each program's code apart (a monocular run at one image
+    size holds about 10,000 maps), and a process past the limit dies in LLVM ("Cannot allocate
+    memory"). Released programs come back from the compilation cache when used again."""
     maps = memory_maps()
     if maps is None or maps[0] <= config.release_programs_at * maps[1]:
-        return False
+        return ""
     jax.clear_caches()
     gc.collect()  # the executables are freed, and their maps unmapped, with their last reference
     after = memory_maps() or (0, maps[1])
-    if not quiet:
-        print(f"mbavo: note: released the compiled programs of earlier runs ({maps[0]} of the system's {maps[1]} memory maps held, "
-              f"{after[0]} now); they load from the compilation cache, or compile again, when needed", file=sys.stderr)
-    return True
+    return (f"released the compiled programs of earlier runs ({maps[0]} of the system's {maps[1]} memory maps held, "
+            f"{after[0]} now); they load from the compilation cache, or compile again, when needed")

@@ -1,6 +1,7 @@
 """Why a monocular window's new points were dropped: the window's affine brightness of new keyframes
 and traced frames (``mono.window.frame_affine``, ``relative_affine``; ``odometry.mono``), and the
-deblurring's penalty in monocular runs (``mono.deblur_regularization``).
+deblurring's penalty and the tracker's Jacobian in monocular runs (``mono.deblur_regularization``,
+``mono.fresh_jacobian_levels``).
 
 A keyframe joins the window with the brightness its tracking found against the newest keyframe, not
 with (0, 0), and candidates are matched under the frame's brightness relative to their own host. A
@@ -115,3 +116,14 @@ def test_monocular_keyframes_are_deblurred_with_the_monocular_penalty():
     assert MonoPipeline(_camera(), cfg).config.deblur.regularization == 0.07
     assert RGBDPipeline(_camera(), cfg).config.deblur.regularization == 0.01
     assert RunConfig().mono.deblur_regularization > RunConfig().deblur.regularization
+
+
+def test_monocular_tracking_recomputes_the_jacobian_as_the_monocular_setting_says():
+    """The monocular pipeline's tracker takes ``mono.fresh_jacobian_levels`` (per-step on every level by
+    default), the RGB-D pipeline's ``tracker.fresh_jacobian_levels`` (the chord method on the finer levels)."""
+    from mbavo_jax.odometry.rgbd import RGBDPipeline
+
+    cfg = RunConfig().replace(mono=dict(fresh_jacobian_levels=2), tracker=dict(fresh_jacobian_levels=1))
+    assert MonoPipeline(_camera(), cfg).config.tracker.fresh_jacobian_levels == 2
+    assert RGBDPipeline(_camera(), cfg).config.tracker.fresh_jacobian_levels == 1
+    assert RunConfig().mono.fresh_jacobian_levels >= RunConfig().tracker.levels > RunConfig().tracker.fresh_jacobian_levels

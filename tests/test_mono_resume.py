@@ -103,10 +103,13 @@ def test_a_stop_inside_the_exposure_probe_writes_nothing(seq_dir, tmp_path, monk
 
 
 def test_resume_without_a_checkpoint_is_one_clear_line(seq_dir, tmp_path, mbavo):
+    """Also when the run first releases the process's compiled programs (``runtime.release_programs_at``
+    tiny): its note is printed only once the input has passed the checks."""
     out = tmp_path / "run"
-    r = mbavo("track", seq_dir, "--out", out, "--mode", "mono", "--max-frames", "3", "-q", "--set", "runtime.checkpoint_every=0")
+    settings = ("--set", "runtime.checkpoint_every=0", "--set", "runtime.release_programs_at=1e-9")
+    r = mbavo("track", seq_dir, "--out", out, "--mode", "mono", "--max-frames", "3", "-q", *settings)
     assert r.returncode == 0, r.stderr
-    r = mbavo("track", seq_dir, "--out", out, "--mode", "mono", "--resume", "--set", "runtime.checkpoint_every=0")
+    r = mbavo("track", seq_dir, "--out", out, "--mode", "mono", "--resume", *settings)
     assert r.returncode == 1 and "checkpoint.pkl" in r.stderr and "cannot --resume" in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     assert len(committed_rows(out)) == 3  # the refusal changed nothing

@@ -111,7 +111,7 @@ def test_a_run_first_releases_the_programs_of_earlier_runs_near_the_memory_map_l
         from mbavo_jax.odometry import run_odometry
         from mbavo_jax.runtime import make_room_for_programs, memory_maps
         held, limit = memory_maps()
-        assert not make_room_for_programs(RunConfig().runtime, quiet=True), (held, limit)  # a fresh process is far below
+        assert not make_room_for_programs(RunConfig().runtime), (held, limit)  # a fresh process is far below
         seq = open_sequence({str(tiny)!r})
         config = RunConfig().replace(tracker=dict(n=4), runtime=dict(release_programs_at=1e-6, cache_dir={str(tmp_path / "cache")!r}))
         first = run_odometry(seq, {str(tmp_path / "a")!r}, config, progress=False)

@@ -120,12 +120,15 @@ class MonoState:
 class MonoPipeline(RGBDPipeline):
     """Blur-aware monocular visual odometry: the blur-aware tracker over a windowed photometric
     bundle adjustment of deblurred keyframes (depth, when the sequence has it, is not used; keyframes
-    are deblurred with ``mono.deblur_regularization``)."""
+    are deblurred with ``mono.deblur_regularization``; the tracker recomputes its Jacobian as
+    ``mono.fresh_jacobian_levels`` says)."""
 
     checkpoints: typing.ClassVar[bool] = True  # --resume: its window and points cannot be rebuilt from the run's records
 
     def __post_init__(self):
-        config = self.config.replace(tracker=dict(depth_weight=0.0), deblur=dict(regularization=self.config.mono.deblur_regularization))
+        mono = self.config.mono
+        config = self.config.replace(tracker=dict(depth_weight=0.0, fresh_jacobian_levels=mono.fresh_jacobian_levels),
+                                     deblur=dict(regularization=mono.deblur_regularization))
         object.__setattr__(self, "config", config)
 
     def probe_frames(self) -> int:

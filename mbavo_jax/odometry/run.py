@@ -210,11 +210,13 @@ def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False
     pipeline = pipeline or choose_pipeline(seq, config)
     config = pipeline.config
     enable_compilation_cache(config.runtime)
-    make_room_for_programs(config.runtime, quiet=not progress)
+    released = make_room_for_programs(config.runtime)
     t_start, counts_start, startup = time.perf_counter(), compile_counts(), None
     if isinstance(pipeline, MonoPipeline) and seq.has_depth:  # monocular: the depth maps are not read
         seq = open_sequence(seq.path, seq.kind, depth=False)
     state, start, note = _prepare(out, seq, config, resume, resume_anyway, pipeline, progress)
+    if released and progress:  # after the checks: input refused there gets its one line only
+        print(f"mbavo: note: {released}", file=sys.stderr)
     first, outcome = state, None
     n_total = len(seq) if max_frames is None else min(len(seq), max_frames)
     with RunOutputs(out, seq.camera, config.tracker.response_gamma, append=start > 0) as outputs, \

@@ -176,18 +176,21 @@ def _compilation(before: dict, startup: float | None) -> dict:
 
 
 def _prepare(out: pathlib.Path, seq, config: RunConfig, resume: bool, resume_anyway: bool, pipeline: Pipeline,
-             progress: bool) -> tuple[RunState, int, str]:
+             progress: bool, released: str = "") -> tuple[RunState, int, str]:
     """The run folder made ready, the loop's starting point and what the image size changes in
-    the settings ('' when nothing; printed with the progress): checks (memory, image size, for a
-    resume the sequence and settings) first, then a fresh folder or the reconciled earlier run."""
+    the settings ('' when nothing): checks (memory, image size, for a resume the sequence and
+    settings) first, then a fresh folder or the reconciled earlier run. With the progress, the
+    notes (the size note, ``released``: the programs released before the run) are printed once the
+    checks have passed: input refused there gets its one line only."""
     check_memory(config, seq.camera.height, seq.camera.width)
     note = config.tracker.size_note(seq.camera.height, seq.camera.width)  # raises on images too small to track
     prepare_out_dir(out)
     if resume:
         check_resume(out, seq, config, resume_anyway)
     state, start = resume_state(out, seq, pipeline, progress) if resume else (start_state(seq, pipeline, progress), 0)
-    if note and progress:
-        print(f"mbavo: note: {note}", file=sys.stderr)
+    for line in (released, note) if progress else ():
+        if line:
+            print(f"mbavo: note: {line}", file=sys.stderr)
     if start == 0:
         clear_run(out)
     record_run(out, seq, config, start, resume and resume_anyway)
@@ -214,9 +217,7 @@ def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False
     t_start, counts_start, startup = time.perf_counter(), compile_counts(), None
     if isinstance(pipeline, MonoPipeline) and seq.has_depth:  # monocular: the depth maps are not read
         seq = open_sequence(seq.path, seq.kind, depth=False)
-    state, start, note = _prepare(out, seq, config, resume, resume_anyway, pipeline, progress)
-    if released and progress:  # after the checks: input refused there gets its one line only
-        print(f"mbavo: note: {released}", file=sys.stderr)
+    state, start, note = _prepare(out, seq, config, resume, resume_anyway, pipeline, progress, released)
     first, outcome = state, None
     n_total = len(seq) if max_frames is None else min(len(seq), max_frames)
     with RunOutputs(out, seq.camera, config.tracker.response_gamma, append=start > 0) as outputs, \

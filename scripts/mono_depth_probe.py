@@ -17,8 +17,11 @@ the window to its true inverse depth at its host pixel, brought to the window's 
 ratio over the points already there). ``--keyframes`` changes how each new keyframe is deblurred
 (``estimated``: as the run does, with the PSNR of each deblurred keyframe against the generator's
 sharp render printed; ``true-depth``: with the true depth map; ``true-path``: with the true depth
-and the true exposure path; ``sharp``: the sharp render itself). Used for "The collapse traced to
-the new points' depths" and "Where the monocular depths go wrong" in docs/benchmarks.md. Example:
+and the true exposure path; ``sharp``: the sharp render itself). With ``--keyframes sharp``,
+``--sharp-in tracker|ba|trace`` gives the sharp render to one part of the system only (the tracker's
+reference, the bundle adjustment's window, the candidates' traces; class ``SharpIn``). Used for "The
+collapse traced to the new points' depths", "Where the monocular depths go wrong" and "Extreme blur
+with sharp keyframes" in docs/benchmarks.md. Example:
 
     python scripts/mono_depth_probe.py runs/bench_extreme_640x480_seed0 --method mono_n64 --out /tmp/probe
 """
@@ -29,6 +32,7 @@ import json
 import pathlib
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -39,7 +43,7 @@ from mbavo_jax.evaluation.associate import associate
 from mbavo_jax.evaluation.poses import pose_matrices
 from mbavo_jax.deblur import choose_deblur_n, psnr
 from mbavo_jax.geometry import ExposureTrajectory, Pose
-from mbavo_jax.image import quantize16
+from mbavo_jax.image import linearize, quantize16
 from mbavo_jax.io import read_image_gray, read_tum_trajectory
 from mbavo_jax.odometry import run_odometry
 from mbavo_jax.odometry import mono as om
@@ -152,6 +156,62 @@ def keyframe_deblurring(truth: Truth, how: str):
     return patched
 
 
+class SharpIn:
+    """``--keyframes sharp --sharp-in PART``: the run deblurs its keyframes as usual and only PART reads
+    each keyframe's sharp render in place of its deblurred image: ``tracker`` (the tracker's reference),
+    ``ba`` (the window's images: the bundle adjustment and the new candidates' selection; the tracker
+    and the traces keep the deblurred image) or ``trace`` (the host patterns of the candidates'
+    epipolar search). Images are matched by their bytes, display and linear values alike."""
+
+    def __init__(self, truth: Truth, part: str):
+        self.truth, self.part, self.swaps = truth, part, 0
+        self.to_sharp, self.to_deblurred = {}, {}
+        self.index = {_key(truth.seq[i].image): i for i in range(len(truth.seq))}
+
+    def record(self, raw, out, gamma: float) -> None:
+        """Remember the deblurred ``out`` of frame image ``raw`` and its sharp render, both ways."""
+        frame = self.truth.seq[self.index[_key(np.asarray(raw, np.float32))]]
+        sharp = quantize16(read_image_gray(pathlib.Path(self.truth.seq.path) / "sharp" / f"{frame.timestamp:.6f}.png"))
+        for a, b in ((out, sharp), (linearize(out, gamma), linearize(sharp, gamma))):
+            self.to_sharp[_key(a)], self.to_deblurred[_key(b)] = b, a
+
+    def swap(self, image, table: dict):
+        """``image`` replaced through ``table`` when it is there (counted)."""
+        other = table.get(_key(image))
+        self.swaps += other is not None
+        return image if other is None else (jnp.asarray(other) if isinstance(image, jax.Array) else other)
+
+    def install(self) -> None:
+        deblurred, make_keyframe, backend, trace = rgbd.RGBDPipeline.deblurred, om.MonoPipeline.make_keyframe, om.MonoPipeline._backend, om.trace
+        probe, part = self, self.part
+
+        def patched_deblurred(pipe, image, depth, path, readout=0.0):
+            out, n = deblurred(pipe, image, depth, path, readout)
+            probe.record(image, out, pipe.config.tracker.response_gamma)
+            return out, n
+
+        def patched_make_keyframe(pipe, state, image, depth, T_world_kf):
+            image = probe.swap(image, probe.to_sharp if part == "tracker" else probe.to_deblurred if part == "ba" else {})
+            return make_keyframe(pipe, state, image, depth, T_world_kf)
+
+        def patched_backend(pipe, state, frame, outcome):
+            new = outcome.new_keyframe
+            if part == "ba" and new is not None:
+                outcome = dataclasses.replace(outcome, new_keyframe=dataclasses.replace(new, image=probe.swap(new.image, probe.to_sharp)))
+            return backend(pipe, state, frame, outcome)
+
+        def patched_trace(c, host_image, *rest, **kw):
+            table = probe.to_sharp if part == "trace" else probe.to_deblurred if part == "ba" else {}
+            return trace(c, probe.swap(host_image, table), *rest, **kw)
+
+        rgbd.RGBDPipeline.deblurred, om.MonoPipeline.make_keyframe = patched_deblurred, patched_make_keyframe
+        om.MonoPipeline._backend, om.trace = patched_backend, patched_trace
+
+
+def _key(image) -> int:
+    return hash(np.asarray(image, np.float32).tobytes())
+
+
 def motion_errors(seq, run: pathlib.Path, max_diff: float, block: int = 20) -> list[dict]:
     """Per block of ``block`` frame pairs: the median rotation error (deg) and translation direction
     error (deg) of the run's frame-to-frame motion against the ground truth."""
@@ -177,6 +237,8 @@ def main() -> int:
     ap.add_argument("--oracle", action="store_true", help="points join the window at their true depth (at the window's scale)")
     ap.add_argument("--keyframes", choices=("run", "estimated", "true-depth", "true-path", "sharp"), default="run",
                     help="how new keyframes are deblurred (module docstring); run: as the run does, nothing printed")
+    ap.add_argument("--sharp-in", choices=("all", "tracker", "ba", "trace"), default="all",
+                    help="with --keyframes sharp: which part reads the sharp render (class SharpIn); the others the deblurred image")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="a setting changed (repeatable)")
     args = ap.parse_args()
     seq = open_sequence(args.sequence)
@@ -192,12 +254,19 @@ def main() -> int:
     truth = Truth(open_sequence(args.sequence), config.evaluation.t_max_diff)
     if args.oracle:
         om.MonoPipeline._activate = oracle_activate(truth)
-    if args.keyframes != "run":
+    if args.sharp_in != "all" and args.keyframes != "sharp":
+        raise SystemExit("mono_depth_probe: --sharp-in needs --keyframes sharp")
+    swap = SharpIn(truth, args.sharp_in) if args.sharp_in != "all" else None
+    if swap is not None:
+        swap.install()
+    elif args.keyframes != "run":
         rgbd.RGBDPipeline.deblurred = keyframe_deblurring(truth, args.keyframes)
     out = pathlib.Path(args.out)
     run_odometry(seq, out, config, progress=False, observer=observer(truth))
     for row in motion_errors(seq, out, config.evaluation.t_max_diff):
         print(json.dumps(row))
+    if swap is not None:
+        print(json.dumps({"sharp_in": swap.part, "images_swapped": swap.swaps}))
     print(json.dumps(trajectory_scores(seq, out, config.evaluation)))
     return 0
 

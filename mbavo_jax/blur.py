@@ -63,14 +63,19 @@ def is_rolling(readout) -> bool:
     return isinstance(readout, jax.core.Tracer) or float(readout) != 0.0
 
 
-def virtual_sample(image: Float[Array, "H W"], camera: PinholeCamera, pq: Float[Array, "7"], ray: Float[Array, "3"], d):
+def virtual_sample(image: Float[Array, "H W"], camera: PinholeCamera, pq: Float[Array, "7"], ray: Float[Array, "3"], d, row0=None):
     """v_i for one pixel at virtual pose pq = [t, q̄]: ``(value, ∇I at the sample (2,), the plane
     point in the reference frame (3,), valid)``. Invalid samples (ray misses the plane, point behind
-    the reference camera, outside the image) have value 0 and finite derivatives."""
+    the reference camera, outside the image) have value 0 and finite derivatives. ``row0``: the
+    reference is rows ``row0 .. row0 + camera.height - 1`` of ``image`` (a stack of images)."""
     p_ref, _, ok = plane_point(pq[3:], pq[:3], ray, d)
     ok = ok & (p_ref[2] > 1e-6)
     safe = jnp.where(ok, p_ref, jnp.array([0.0, 0.0, 1.0], p_ref.dtype))
-    value, grad, inside = bilinear_with_gradient(image, camera.project(safe))
+    x = camera.project(safe)
+    if row0 is not None:
+        ok = ok & (x[1] >= 0) & (x[1] <= camera.height - 1)
+        x = x + jnp.stack([jnp.zeros_like(x[1]), jnp.asarray(row0, x.dtype)])
+    value, grad, inside = bilinear_with_gradient(image, x)
     return value, grad, safe, ok & inside
 
 
@@ -84,12 +89,12 @@ def per_pixel_poses(sample, pqs: Float[Array, "B n 7"], rows: Int[Array, " R"], 
 
 def synthesize(
     image: Float[Array, "H W"], camera: PinholeCamera, pqs: Float[Array, "B n 7"], rays: Float[Array, "R 3"], depths: Float[Array, " R"],
-    rows: Int[Array, " R"],
+    rows: Int[Array, " R"], row0=None,
 ) -> tuple[Float[Array, " R"], Bool[Array, " R"]]:
     """Eq. 6: blurry intensities at R pixels (unit rays, plane depths) from the sharp ``image`` and
     the pose table ``pqs`` (pixel r uses row bucket ``rows[r]``); a pixel is valid only if all n
-    samples are (invalid pixels are 0)."""
-    sample = lambda pq, ray, d: virtual_sample(image, camera, pq, ray, d)
+    samples are (invalid pixels are 0). ``row0``: as in :func:`virtual_sample`."""
+    sample = lambda pq, ray, d: virtual_sample(image, camera, pq, ray, d, row0)
     values, _, _, ok = per_pixel_poses(sample, pqs, rows, rays, depths)  # (n, R)
     return blend(values, ok)
 

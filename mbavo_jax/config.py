@@ -335,6 +335,7 @@ class MonoConfig(Settings):
     ba_huber: float = setting(9.0 / 255.0, "Huber threshold of the photometric residuals on [0, 1] intensities", POSITIVE)
     ba_outlier: float = setting(12.0 / 255.0, "a point-keyframe pattern whose RMS residual exceeds this is an outlier", POSITIVE)
     ba_lambda: float = setting(1e-4, "initial Levenberg-Marquardt damping (relative to the diagonal)", POSITIVE)
+    ba_blur_samples: int = setting(1, "virtual frames of the blur model in the bundle adjustment: each keyframe's recorded (blurry) image is compared with its points' hosts blurred along its exposure path; 1: the deblurred keyframes compared with each other (the paper's back-end)", AT_LEAST_1)
     deblur_regularization: float = setting(0.1, "the keyframe deblurring's gradient penalty in monocular runs (in place of deblur.regularization): its depth is the window's points filled in between them, so its blur kernels are less sure than a depth sensor's and a weak penalty rings, which makes the keyframe's new points outliers in the bundle adjustment", NONNEG)
     fresh_jacobian_levels: int = setting(4, "the tracker's levels that recompute the photometric Jacobian at every LM step in monocular runs, in place of "
                                          "tracker.fresh_jacobian_levels (>= tracker.levels: all, the per-step Jacobian; tracking is a small part of "

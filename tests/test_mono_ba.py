@@ -21,6 +21,7 @@ from mbavo_jax.errors import ArgumentError
 from mbavo_jax.geometry import quaternion as quat
 from mbavo_jax.geometry.camera import PinholeCamera
 from mbavo_jax.geometry.pose import Pose
+from mbavo_jax.geometry.trajectory import ExposureTrajectory
 from mbavo_jax.image import downsample
 from mbavo_jax.mono import ba, depthmap
 from mbavo_jax.mono.depthmap import project_points
@@ -374,6 +375,8 @@ def _padded(win: Window, k: int, p: int, slot_of: list[int], rng) -> tuple[Windo
     nan = jnp.asarray(np.nan, dtype)
     padded = Window(
         images=jnp.full((k, h, w), nan).at[slot_of].set(win.images),
+        raw=jnp.full((k, *win.raw.shape[1:]), nan).at[slot_of].set(win.raw),
+        exposure=jax.tree.map(lambda a: jnp.repeat(a[:1], k, axis=0).at[slot_of].set(a), win.exposure),
         poses=poses,
         affine=rand(k, 2).at[slot_of].set(win.affine),
         kf_valid=jnp.zeros(k, bool).at[slot_of].set(win.kf_valid),
@@ -391,8 +394,8 @@ def _first_keyframes(win: Window, n: int) -> Window:
     """The first n keyframes of ``win`` and their points, in a window of exactly that size."""
     keep = np.flatnonzero(np.asarray(win.host) < n)
     take = lambda a: a[:n]
-    return Window(take(win.images), jax.tree.map(take, win.poses), take(win.affine), take(win.kf_valid), take(win.stamp),
-                  win.host[keep], win.pixels[keep], win.idepth[keep], win.point_valid[keep], Prior.zeros(n, win.idepth.dtype))
+    return Window(take(win.images), take(win.raw), jax.tree.map(take, win.exposure), jax.tree.map(take, win.poses), take(win.affine),
+                  take(win.kf_valid), take(win.stamp), win.host[keep], win.pixels[keep], win.idepth[keep], win.point_valid[keep], Prior.zeros(n, win.idepth.dtype))
 
 
 def _to64(tree):
@@ -443,3 +446,82 @@ def test_after_marginalising_the_prior_holds_the_gauge(scene_window):
     pos0 = np.linalg.norm(np.asarray(start.poses.t - truth.poses.t), axis=1)[keep]
     assert pos.max() < 0.004 and pos.max() < 0.3 * pos0.max(), (pos, pos0)
     assert float(report.energy_after) < 0.5 * float(report.energy_before)
+
+
+# ----------------------------------------------------------------------- the blur-aware residuals
+
+
+def _blurry_target(t: float, exposure: float, samples: int = 16):
+    """A frame of the default scene at time t exposed ``exposure`` s along ``camera_path``: (recorded
+    image, sharp image, mid pose, exposure path about the mid pose), at 160x120 as the keyframes."""
+    big = _camera(4 * W, 4 * H)
+    arrays = scene_arrays(default_scene(0, use_real_textures=False))
+    sub = [camera_path(t + s, 0.6, 60.0, 0) for s in np.linspace(-exposure / 2, exposure / 2, samples)]
+    mid = camera_path(t, 0.6, 60.0, 0)
+    blurry, sharp, _ = render_exposure(arrays, big, jax.tree.map(lambda *a: jnp.stack(a), *sub), mid, 2.2)
+    small = lambda a: cv2.GaussianBlur(np.asarray(downsample(downsample(a))), (0, 0), 1.0)
+    to_mid = mid.inverse()
+    return small(blurry), small(sharp), mid, ExposureTrajectory(to_mid.compose(sub[0]), to_mid.compose(sub[-1]))
+
+
+def _pair_rms(win: Window, cam, host: ba.HostValues, target: int) -> float:
+    r, ok, _ = ba._evaluate(win, cam, False, host)
+    visible = np.asarray(ba._visible(win, ok))[:, target]
+    return float(np.sqrt(np.mean(np.asarray(r)[:, target][visible] ** 2)))
+
+
+@pytest.mark.slow
+def test_blur_aware_predictions_match_the_recorded_blurry_keyframe(scene_window):
+    """A keyframe recorded with motion blur (about 10 px) is predicted from the sharp host blurred
+    along its exposure path (``mono.ba_blur_samples``) far better than by the sharp host values, and
+    about as well as the sharp model predicts its sharp image."""
+    cam, truth = scene_window
+    blurry, sharp, mid, path = _blurry_target(1.15, 0.08)
+    win = dataclasses.replace(truth, point_valid=truth.point_valid & (truth.host == 0))
+    win = dataclasses.replace(win, kf_valid=win.kf_valid.at[2:].set(False), raw=win.images)  # a window that keeps recorded frames
+    win, slot = add_keyframe(dataclasses.replace(win, kf_valid=win.kf_valid.at[1].set(False)), sharp, mid, raw=blurry, exposure=path)
+    sharp_model = ba.host_values(win, cam, 1)
+    blur_model = ba.host_values(win, cam, 16)
+    per_target = lambda a: jnp.broadcast_to(a[:, None], blur_model.values.shape)
+    on_raw = ba.HostValues(per_target(sharp_model.values), per_target(sharp_model.ok), True)  # the sharp model on the recorded image
+    rms_sharp = _pair_rms(win, cam, sharp_model, slot)
+    rms_raw = _pair_rms(win, cam, on_raw, slot)
+    rms_blur = _pair_rms(win, cam, blur_model, slot)
+    assert rms_blur < 0.4 * rms_raw, (rms_blur, rms_raw)
+    assert rms_blur < 1.5 * rms_sharp, (rms_blur, rms_sharp)
+    change = np.abs(np.asarray(per_target(sharp_model.values) - blur_model.values))
+    assert change.max() > 0.05  # the paths are long enough to change the predictions
+
+
+def test_blur_aware_structured_jacobians_match_dense(x64):
+    """With exposure paths and recorded images, the blocks against the held blurred predictions are
+    the Jacobian of ``residual_vector`` (whose predictions are those of the unmoved window)."""
+    win = _small_window(jnp.float64)
+    cam = _camera(64, 48, jnp.float64)
+    rng = np.random.default_rng(5)
+    dtype = jnp.float64
+    half = Pose(quat.exp(jnp.asarray([0.004, -0.006, 0.002], dtype)), jnp.asarray([0.01, 0.004, 0.0], dtype))
+    paths = ExposureTrajectory(jax.tree.map(lambda a: jnp.stack([a] * win.slots), half.inverse()),
+                               jax.tree.map(lambda a: jnp.stack([a] * win.slots), half))
+    raw = jnp.stack([jnp.asarray(_smooth_image(rng, 48, 64), dtype) for _ in range(win.slots)])
+    win = dataclasses.replace(win, raw=raw, exposure=paths)
+    host = ba.host_values(win, cam, 8)
+    assert host.blurred and np.abs(np.asarray(host.values - ba.host_values(win, cam, 1).values[:, None])).max() > 1e-3
+    lin = jax.jit(ba.linearize)(win, cam, HUBER, OUTLIER, host)
+    assert int(lin.visible.sum()) > 40
+    m = 8 * win.slots + win.capacity
+    dense = jax.jit(jax.jacfwd(ba.residual_vector, argnums=2), static_argnames="samples")(win, cam, jnp.zeros(m, dtype), samples=8)
+    np.testing.assert_allclose(_full_jacobian(lin, win), np.asarray(dense), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(lin.r).ravel(), np.asarray(ba.residual_vector(win, cam, samples=8)), atol=1e-12)
+
+
+def test_a_blur_aware_adjustment_needs_a_window_that_keeps_recorded_frames():
+    win = _small_window(jnp.float32)
+    cam = _camera(64, 48)
+    assert not win.recorded and win.raw.shape == (3, 0, 0)  # the sharp adjustment keeps no copy of the frames
+    with pytest.raises(ArgumentError, match="recorded"):
+        add_keyframe(Window.empty(2, 4, 48, 64), np.zeros((48, 64)), Pose.identity(), raw=np.zeros((48, 64)))
+    with pytest.raises(ArgumentError, match="recorded frames"):
+        ba.bundle_adjust(win, cam, CFG, samples=4)
+    kept, slot = add_keyframe(Window.empty(2, 4, 48, 64, recorded=True), np.zeros((48, 64)), Pose.identity(), raw=np.ones((48, 64)))
+    assert kept.recorded and float(kept.raw[slot].min()) == 1.0 and float(kept.images[slot].max()) == 0.0

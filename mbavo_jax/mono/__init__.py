@@ -10,6 +10,9 @@ Bundle adjustment on your own keyframes::
     window, slot = add_keyframe(window, linear_image, T_world_kf)
     window, _ = add_points(window, slot, pixels, inverse_depths)
     window, report = bundle_adjust(window, camera, MonoConfig())
+
+Keyframes recorded with motion blur: give ``add_keyframe`` the recorded frame (``raw=``) and its
+exposure path about ``T_world_kf`` (``exposure=``), and ``bundle_adjust`` ``samples=`` virtual frames.
 """
 
 from .ba import BAReport, bundle_adjust, marginalize

@@ -1,4 +1,4 @@
-"""Windowed photometric bundle adjustment over sharp keyframes (DSO's back-end, MBA-VO supplement §6),
+"""Windowed photometric bundle adjustment over keyframes (DSO's back-end, MBA-VO supplement §6),
 with the inverse depths eliminated by the Schur complement and DSO's marginalisation.
 
 A residual is one pattern pixel x_k = x + o_k (``tracking.points.PATTERN``) of a point hosted by
@@ -6,6 +6,13 @@ keyframe h, seen in another keyframe t of the window (DSO, with the point's one 
 
     p   = R_th π⁻¹(x_k) + ρ t_th        (T_th = T_world_t⁻¹ T_world_h; p ∝ the point in t)
     r_k = I_t(π(p)) − [e^(a_t − a_h) (I_h(x_k) − b_h) + b_t]
+
+With ``samples`` > 1 (``mono.ba_blur_samples``) the residual is blur-aware: I_t is target t's frame
+as recorded (``Window.raw``, blurry) and I_h(x_k) is replaced by the host image blurred as t recorded
+it (Eq. 6: ``samples`` virtual frames along t's exposure path, ``Window.exposure``, through the host's
+frontal-parallel plane at the point's depth, at t's pixel of x_k). Its middle sample is x_k itself
+for any state, so these predictions are computed once per solve and held (like I_h(x_k)): only the
+shape of the blur, not its place, depends on the variables.
 
 A (point, target) pair is one block of 8 residuals; its Jacobian (8 x 17) is taken by autodiff with
 respect to [host pose (6), host affine (2), target pose (6), target affine (2), ρ (1)], pose
@@ -41,13 +48,15 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..config import MonoConfig
 from ..errors import ArgumentError
+from ..blur import synthesize, virtual_pq
 from ..geometry.camera import PinholeCamera
 from ..geometry.pose import Pose
+from ..geometry.trajectory import ExposureTrajectory
 from ..image import bilinear
 from ..tracking.points import PATTERN
 from .window import VARS, Prior, Window, pose_delta, set_slot_pose
 
-__all__ = ["Linearization", "NormalEquations", "Anchor", "BAReport", "linearize", "normal_equations", "make_anchor",
+__all__ = ["HostValues", "host_values", "Linearization", "NormalEquations", "Anchor", "BAReport", "linearize", "normal_equations", "make_anchor",
            "camera_terms", "system", "reduce_points", "schur_solve", "dense_solve", "marginalize_slot", "apply_increment",
            "residual_vector", "bundle_adjust", "marginalize", "BLOCK"]
 
@@ -123,7 +132,17 @@ def _pattern(dtype) -> Float[Array, "8 2"]:
     return jnp.asarray(PATTERN, dtype)
 
 
-def _host_values(window: Window):
+class HostValues(eqx.Module):
+    """What each point's pattern predicts in its targets, held through one solve: the host's values
+    (sharp model, (P, 8) for every target), or the host's image blurred along each target's exposure
+    path ((P, K, 8))."""
+
+    values: Float[Array, "P 8"] | Float[Array, "P K 8"]
+    ok: Bool[Array, "P 8"] | Bool[Array, "P K 8"]
+    blurred: bool = eqx.field(static=True)  # targets are then compared in their recorded (blurry) images
+
+
+def _sharp_host_values(window: Window):
     """Each point's pattern in its host image: values (P, 8) and validity (P, 8). Every image is
     sampled at every point (no per-point image gather), then the host's row is taken."""
     pat = _pattern(window.pixels.dtype)
@@ -134,21 +153,70 @@ def _host_values(window: Window):
     return vals[host, idx], ok[host, idx]
 
 
+def _blurred_pattern(stack, camera: PinholeCamera, T_wt: Pose, path_t: ExposureTrajectory, T_wh: Pose, row0, pixel, idepth,
+                     samples: int):
+    """One point's pattern as target t recorded it (Eq. 6): the host image (rows ``row0`` of the
+    image ``stack``) along t's exposure path ``path_t`` (about T_wt) with ``samples`` virtual frames,
+    through the host's frontal-parallel plane at the point's depth; values (8,), validity (8,)."""
+    T_ht = T_wh.inverse().compose(T_wt)
+    x_t, front = _project_pattern(camera, T_ht.inverse(), pixel, idepth)
+    path = path_t.seen_from(T_ht)  # the target's virtual cameras in the host
+    rays = jax.vmap(camera.unit_ray)(x_t)
+    depth = jnp.full(x_t.shape[0], 1.0 / jnp.maximum(idepth, 1e-6))
+    rows = jnp.zeros(x_t.shape[0], jnp.int32)
+    values, ok = synthesize(stack, camera, virtual_pq(path, samples)[None], rays, depth, rows, row0)
+    return values, ok & front
+
+
+def host_values(window: Window, camera: PinholeCamera, samples: int = 1) -> HostValues:
+    """The predictions of every (point, target) pair: sharp (``samples`` ≤ 1: the host's values,
+    the paper's back-end on deblurred keyframes) or blurred along each target's exposure path with
+    ``samples`` virtual frames (module text)."""
+    vals, ok = _sharp_host_values(window)
+    k = window.slots
+    if samples <= 1:
+        return HostValues(vals, ok, False)
+    if not window.recorded:
+        raise ArgumentError(f"a blur-aware adjustment ({samples} virtual frames) needs the keyframes' recorded frames: "
+                            "make the window with Window.empty(..., recorded=True)")
+    height = window.images.shape[1]
+    stack = window.images.reshape(k * height, -1)
+    host = jnp.clip(window.host, 0, k - 1)
+    T_wh = Pose(window.poses.q[host], window.poses.t[host])
+    blur = functools.partial(_blurred_pattern, stack, camera, samples=samples)
+    points = jax.vmap(blur, in_axes=(None, None, 0, 0, 0, 0))
+    bv, bok = jax.vmap(points, in_axes=(0, 0, None, None, None, None))(window.poses, window.exposure, T_wh, host * height,
+                                                                       window.pixels, window.idepth)
+    return HostValues(jnp.swapaxes(bv, 0, 1), jnp.swapaxes(bok, 0, 1) & ok[:, None], True)
+
+
+def _project(camera: PinholeCamera, R, t, x, idepth):
+    """Host pixel x on the point's plane (inverse depth ``idepth``) in target t (``R``, ``t``: T_th):
+    its pixel (2,) and whether it is in front of the target camera (with a positive inverse depth)."""
+    ray = jnp.stack([(x[0] - camera.cx) / camera.fx, (x[1] - camera.cy) / camera.fy, jnp.ones_like(x[0])])
+    p = R @ ray + idepth * t
+    front = (p[2] > 1e-6) & (idepth > 0)
+    z = jnp.where(front, p[2], jnp.ones_like(p[2]))
+    return jnp.stack([camera.fx * p[0] / z + camera.cx, camera.fy * p[1] / z + camera.cy]), front
+
+
+def _project_pattern(camera: PinholeCamera, T_th: Pose, pixel, idepth):
+    """The 8 pattern pixels of a point (host pixel, inverse depth) in target t: pixels (8, 2) and
+    their front flags (:func:`_project`)."""
+    R = T_th.rotation()
+    return jax.vmap(lambda o: _project(camera, R, T_th.t, pixel + o, idepth))(_pattern(pixel.dtype))
+
+
 def _pattern_residuals(target, camera: PinholeCamera, T_wt: Pose, aff_t, T_wh: Pose, aff_h, pixel, idepth, host_vals,
                        host_ok):
-    """The 8 residuals of one point (pixel, inverse depth, host values) in one target image, and their
-    validity (in both images, in front of the target camera, positive inverse depth)."""
+    """The 8 residuals of one point (pixel, inverse depth, predicted values) in one target image, and
+    their validity (in both images, in front of the target camera, positive inverse depth)."""
     T_th = T_wt.inverse().compose(T_wh)
     R = T_th.rotation()
     gain = jnp.exp(aff_t[0] - aff_h[0])
 
     def one(offset, i_h, ok_h):
-        x = pixel + offset
-        ray = jnp.stack([(x[0] - camera.cx) / camera.fx, (x[1] - camera.cy) / camera.fy, jnp.ones_like(x[0])])
-        p = R @ ray + idepth * T_th.t
-        front = (p[2] > 1e-6) & (idepth > 0)
-        z = jnp.where(front, p[2], jnp.ones_like(p[2]))
-        x_t = jnp.stack([camera.fx * p[0] / z + camera.cx, camera.fy * p[1] / z + camera.cy])
+        x_t, front = _project(camera, R, T_th.t, pixel + offset, idepth)
         i_t, ok_t = bilinear(target, x_t)
         return i_t - (gain * (i_h - aff_h[1]) + aff_t[1]), ok_t & ok_h & front
 
@@ -169,10 +237,10 @@ def _structural(window: Window) -> Bool[Array, "P K"]:
     return (window.point_valid & window.kf_valid[host])[:, None] & window.kf_valid[None, :] & (host[:, None] != slots[None, :])
 
 
-def _evaluate(window: Window, camera: PinholeCamera, jacobian: bool):
+def _evaluate(window: Window, camera: PinholeCamera, jacobian: bool, host_vals: HostValues):
     """Residuals (P, K, 8), pixel validity (P, K, 8) and, if asked, block Jacobians (P, K, 8, 17) of every
-    (point, target) pair. Targets are the outer map so that each lane samples one image."""
-    host_vals, host_ok = _host_values(window)
+    (point, target) pair against the predictions ``host_vals``. Targets are the outer map so that
+    each lane samples one image."""
     host = jnp.clip(window.host, 0, window.slots - 1)
     T_wh = Pose(window.poses.q[host], window.poses.t[host])
     aff_h = window.affine[host]
@@ -187,9 +255,11 @@ def _evaluate(window: Window, camera: PinholeCamera, jacobian: bool):
         return r, ok, None
 
     points = jax.vmap(pair, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0))
-    targets = jax.vmap(points, in_axes=(0, 0, 0, None, None, None, None, None, None))
-    r, ok, J = targets(window.images, window.poses, window.affine, T_wh, aff_h, window.pixels, window.idepth,
-                       host_vals, host_ok)
+    per_target = 1 if host_vals.blurred else None
+    targets = jax.vmap(points, in_axes=(0, 0, 0, None, None, None, None, per_target, per_target))
+    images = window.raw if host_vals.blurred else window.images
+    r, ok, J = targets(images, window.poses, window.affine, T_wh, aff_h, window.pixels, window.idepth,
+                       host_vals.values, host_vals.ok)
     swap = lambda a: None if a is None else jnp.swapaxes(a, 0, 1)
     return swap(r), swap(ok), swap(J)
 
@@ -218,9 +288,11 @@ def _visible(window, ok):
 
 
 @_full_precision
-def linearize(window: Window, camera: PinholeCamera, huber, outlier) -> Linearization:
-    """Residuals, block Jacobians, Huber weights, masks and the robust cost at the window's state."""
-    r, ok, J = _evaluate(window, camera, True)
+def linearize(window: Window, camera: PinholeCamera, huber, outlier, host: HostValues | None = None) -> Linearization:
+    """Residuals, block Jacobians, Huber weights, masks and the robust cost at the window's state
+    against the predictions ``host`` (None: the sharp model's)."""
+    host = host_values(window, camera) if host is None else host
+    r, ok, J = _evaluate(window, camera, True, host)
     visible = _visible(window, ok)
     r = jnp.where(visible[..., None], r, jnp.zeros_like(r))
     J = jnp.where(visible[..., None, None], J, jnp.zeros_like(J))
@@ -229,9 +301,9 @@ def linearize(window: Window, camera: PinholeCamera, huber, outlier) -> Lineariz
 
 
 @_full_precision
-def _photometric_energy(window: Window, camera: PinholeCamera, huber, outlier):
+def _photometric_energy(window: Window, camera: PinholeCamera, huber, outlier, host: HostValues):
     """The robust cost alone (no Jacobians), with the inlier and visible masks."""
-    r, ok, _ = _evaluate(window, camera, False)
+    r, ok, _ = _evaluate(window, camera, False, host)
     visible = _visible(window, ok)
     r = jnp.where(visible[..., None], r, jnp.zeros_like(r))
     inlier, _, energy = _robust(r, visible, _structural(window), huber, outlier)
@@ -251,14 +323,17 @@ def apply_increment(window: Window, dc: Float[Array, "M"], dd: Float[Array, "P"]
 
 
 @_full_precision
-def residual_vector(window: Window, camera: PinholeCamera, increment: Float[Array, "N"] | None = None) -> Float[Array, "R"]:
+def residual_vector(window: Window, camera: PinholeCamera, increment: Float[Array, "N"] | None = None,
+                    samples: int = 1) -> Float[Array, "R"]:
     """All residuals (P·K·8, ordered point, target, pattern pixel; zero where a pair is not visible) at
-    the window moved by ``increment`` = [Δc (8K), Δd (P)] (zero when None): ``jax.jacfwd`` of this is
-    the full Jacobian the structured blocks must reproduce."""
+    the window moved by ``increment`` = [Δc (8K), Δd (P)] (zero when None), against the predictions
+    of the unmoved window (``host_values`` with ``samples``): ``jax.jacfwd`` of this is the full
+    Jacobian the structured blocks must reproduce."""
     m = VARS * window.slots
+    host = host_values(window, camera, samples)
     if increment is not None:
         window = apply_increment(window, increment[:m], increment[m:])
-    r, ok, _ = _evaluate(window, camera, False)
+    r, ok, _ = _evaluate(window, camera, False, host)
     visible = _visible(window, ok)
     return jnp.where(visible[..., None], r, jnp.zeros_like(r)).reshape(-1)
 
@@ -375,10 +450,10 @@ def _with_camera_terms(window: Window, data: NormalEquations, energy, anchor: An
     return _mask_cameras(neq, window.kf_valid), energy + e
 
 
-def system(window: Window, camera: PinholeCamera, huber, outlier, anchor: Anchor):
+def system(window: Window, camera: PinholeCamera, huber, outlier, anchor: Anchor, host: HostValues | None = None):
     """The full normal equations at the window's state (photometric + prior + anchor) and the total
     cost: ``(NormalEquations, energy)``."""
-    lin = linearize(window, camera, huber, outlier)
+    lin = linearize(window, camera, huber, outlier, host)
     return _with_camera_terms(window, normal_equations(lin, window), lin.energy, anchor)
 
 
@@ -478,29 +553,29 @@ def _select(pred, a, b):
     return jax.tree.map(lambda x, y: jnp.where(pred, x, y), a, b)
 
 
-def _measure(window: Window, camera, huber, outlier):
-    energy, r, visible, inlier = _photometric_energy(window, camera, huber, outlier)
+def _measure(window: Window, camera, huber, outlier, host: HostValues):
+    energy, r, visible, inlier = _photometric_energy(window, camera, huber, outlier, host)
     sq = jnp.sum(jnp.where(inlier[..., None], r * r, jnp.zeros_like(r)))
     return energy, _Measured(sq, visible, inlier)
 
 
-def _relinearize(state: _LMState, camera, huber, outlier):
+def _relinearize(state: _LMState, camera, huber, outlier, host: HostValues):
     """The normal equations and the total cost at the state's window; the first linearisation also
     fixes the anchor's weights. ``(NormalEquations, Anchor, energy)``."""
-    lin = linearize(state.window, camera, huber, outlier)
+    lin = linearize(state.window, camera, huber, outlier, host)
     data = normal_equations(lin, state.window)
     anchor = _select(state.first, make_anchor(state.window, data), state.anchor)
     return *_with_camera_terms(state.window, data, lin.energy, anchor), anchor
 
 
-def _lm_iteration(state: _LMState, camera, huber, outlier) -> _LMState:
+def _lm_iteration(state: _LMState, camera, huber, outlier, host: HostValues) -> _LMState:
     """One LM iteration: relinearise if the last step was accepted, take the Schur step, accept it when
     it lowers the cost (λ halves), else keep the state (λ grows tenfold)."""
-    neq, current, anchor = jax.lax.cond(state.stale, lambda s: _relinearize(s, camera, huber, outlier),
+    neq, current, anchor = jax.lax.cond(state.stale, lambda s: _relinearize(s, camera, huber, outlier, host),
                                         lambda s: (s.neq, s.energy, s.anchor), state)
     dc, dd = schur_solve(neq, state.lam)
     cand = apply_increment(state.window, dc, dd)
-    energy, measured = _measure(cand, camera, huber, outlier)
+    energy, measured = _measure(cand, camera, huber, outlier, host)
     energy = energy + camera_terms(cand, anchor)[2]
     ok = jnp.isfinite(energy) & (energy < current)
     return _LMState(_select(ok, cand, state.window), neq, anchor, jnp.where(ok, energy, current),
@@ -529,16 +604,17 @@ def _zero_equations(window: Window) -> NormalEquations:
     return NormalEquations(z((m, m)), z((p, m)), z(p), z(m), z(p))
 
 
-@jax.jit
+@functools.partial(jax.jit, static_argnames=("samples",))
 @_full_precision
-def _bundle_adjust(window: Window, camera: PinholeCamera, iterations, huber, outlier, lam0):
+def _bundle_adjust(window: Window, camera: PinholeCamera, iterations, huber, outlier, lam0, samples: int):
+    host = host_values(window, camera, samples)  # held through the solve (module text)
     zero = _zero_equations(window)
     anchor = make_anchor(window, zero)  # weights (and the cost with them) come with the first linearisation
-    energy, measured = _measure(window, camera, huber, outlier)
+    energy, measured = _measure(window, camera, huber, outlier, host)
     energy = energy + camera_terms(window, anchor)[2]
     state = _LMState(window, zero, anchor, energy, energy, measured, jnp.asarray(lam0, window.idepth.dtype),
                      jnp.zeros((), jnp.int32), jnp.ones((), bool), jnp.ones((), bool))
-    state = jax.lax.fori_loop(0, iterations, lambda _, s: _lm_iteration(s, camera, huber, outlier), state)
+    state = jax.lax.fori_loop(0, iterations, lambda _, s: _lm_iteration(s, camera, huber, outlier, host), state)
     final = state.measured
     drop = _drop_points(state.window, final.visible, final.inlier)
     out = dataclasses.replace(state.window, point_valid=state.window.point_valid & ~drop)
@@ -548,21 +624,23 @@ def _bundle_adjust(window: Window, camera: PinholeCamera, iterations, huber, out
     return out, report
 
 
-def bundle_adjust(window: Window, camera: PinholeCamera, config: MonoConfig) -> tuple[Window, BAReport]:
+def bundle_adjust(window: Window, camera: PinholeCamera, config: MonoConfig, samples: int | None = None) -> tuple[Window, BAReport]:
     """``config.ba_iterations`` LM iterations of the windowed photometric bundle adjustment (one
-    compiled program per window shape and dtype; the settings are traced); points that end as outliers
-    in most of their targets are invalidated."""
+    compiled program per window shape, dtype and ``samples``; the other settings are traced), with
+    ``samples`` virtual frames of the targets' blur (None: ``config.ba_blur_samples``; 1: sharp
+    keyframes); points that end as outliers in most of their targets are invalidated."""
+    samples = config.ba_blur_samples if samples is None else samples
     return _bundle_adjust(window, camera, jnp.asarray(config.ba_iterations, jnp.int32), config.ba_huber, config.ba_outlier,
-                          config.ba_lambda)
+                          config.ba_lambda, int(samples))
 
 
 # --------------------------------------------------------------------------- marginalisation
 
 
-@jax.jit
+@functools.partial(jax.jit, static_argnames=("samples",))
 @_full_precision
-def _marginalize(window: Window, camera: PinholeCamera, slot, huber, outlier) -> Window:
-    lin = linearize(window, camera, huber, outlier)
+def _marginalize(window: Window, camera: PinholeCamera, slot, huber, outlier, samples: int) -> Window:
+    lin = linearize(window, camera, huber, outlier, host_values(window, camera, samples))
     data = jax.lax.cond(window.prior.active(), _zero_equations,  # the anchor's weights matter only without a prior
                         lambda w: normal_equations(lin, w), window)
     anchor = make_anchor(window, data, scale_with_prior=False)
@@ -579,7 +657,7 @@ def _marginalize(window: Window, camera: PinholeCamera, slot, huber, outlier) ->
                                point_valid=window.point_valid & (window.host != slot), prior=prior)
 
 
-def marginalize(window: Window, slot: int, camera: PinholeCamera, config: MonoConfig) -> Window:
+def marginalize(window: Window, slot: int, camera: PinholeCamera, config: MonoConfig, samples: int | None = None) -> Window:
     """Keyframe ``slot`` leaves the window (DSO): the points it hosts are marginalised (their
     information on the keyframes, by the Schur complement over their inverse depths), then its own
     variables, together with the existing prior (moved to the current state) or, without one, the
@@ -587,4 +665,5 @@ def marginalize(window: Window, slot: int, camera: PinholeCamera, config: MonoCo
     current state. Residuals of other points into this keyframe are dropped; the slot becomes free."""
     if not bool(np.asarray(window.kf_valid)[slot]):
         raise ArgumentError(f"keyframe slot {slot} is empty: nothing to marginalise")
-    return _marginalize(window, camera, jnp.asarray(slot, jnp.int32), config.ba_huber, config.ba_outlier)
+    samples = config.ba_blur_samples if samples is None else samples
+    return _marginalize(window, camera, jnp.asarray(slot, jnp.int32), config.ba_huber, config.ba_outlier, int(samples))

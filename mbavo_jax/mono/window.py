@@ -1,9 +1,10 @@
 """The sliding window of the monocular back-end (DSO's): K keyframe slots and P point slots of fixed
 shape, padded and masked, so that one sequence compiles the bundle adjustment once.
 
-Each keyframe slot holds a sharp (deblurred) keyframe image in linear radiance, its pose
-``T_world_kf`` (camera-to-world) and its affine brightness (a, b): a pixel of host h seen in target t
-predicts ``I_t ≈ e^(a_t - a_h) (I_h - b_h) + b_t``. Each point slot holds a host slot, its host pixel
+Each keyframe slot holds a sharp (deblurred) keyframe image in linear radiance, the frame as it was
+recorded (``raw``, blurry) with its exposure path about the keyframe's pose, its pose ``T_world_kf``
+(camera-to-world) and its affine brightness (a, b): a pixel of host h seen in target t predicts
+``I_t ≈ e^(a_t - a_h) (I_h - b_h) + b_t``. Each point slot holds a host slot, its host pixel
 (level 0) and its inverse depth. ``prior`` is the marginalisation prior on the keyframe variables.
 
 The helpers below (``add_keyframe``, ``add_points``, ...) run on the host, outside ``jit``;
@@ -24,6 +25,7 @@ from ..errors import ArgumentError
 from ..geometry import quaternion as quat
 from ..geometry.camera import PinholeCamera
 from ..geometry.pose import Pose
+from ..geometry.trajectory import ExposureTrajectory
 from ..image import bilinear
 
 __all__ = ["Prior", "Window", "VARS", "add_keyframe", "add_points", "insert_points", "world_points", "points_of",
@@ -75,7 +77,9 @@ class Window(eqx.Module):
     since freed slots are reused.
     """
 
-    images: Float[Array, "K H W"]  # keyframe images, linear radiance
+    images: Float[Array, "K H W"]  # keyframe images (sharp), linear radiance
+    raw: Float[Array, "K h w"]  # the keyframes' frames as recorded (blurry), linear radiance; (K, 0, 0): none kept
+    exposure: ExposureTrajectory  # (K,) each keyframe's exposure path T_kf_start, T_kf_end (identity: sharp)
     poses: Pose  # (K,) T_world_kf
     affine: Float[Array, "K 2"]  # (a, b) per keyframe
     kf_valid: Bool[Array, "K"]
@@ -87,10 +91,13 @@ class Window(eqx.Module):
     prior: Prior
 
     @staticmethod
-    def empty(k: int, p: int, height: int, width: int, dtype=jnp.float32) -> "Window":
-        """A window with K free keyframe slots and P free point slots for height x width images."""
+    def empty(k: int, p: int, height: int, width: int, dtype=jnp.float32, recorded: bool = False) -> "Window":
+        """A window with K free keyframe slots and P free point slots for height x width images;
+        ``recorded``: it also keeps each keyframe's recorded frame (the blur-aware adjustment reads it)."""
         return Window(
             images=jnp.zeros((k, height, width), dtype),
+            raw=jnp.zeros((k, height, width) if recorded else (k, 0, 0), dtype),
+            exposure=ExposureTrajectory(_identity_poses(k, dtype), _identity_poses(k, dtype)),
             poses=_identity_poses(k, dtype),
             affine=jnp.zeros((k, 2), dtype),
             kf_valid=jnp.zeros(k, bool),
@@ -109,6 +116,11 @@ class Window(eqx.Module):
     @property
     def capacity(self) -> int:
         return self.idepth.shape[0]
+
+    @property
+    def recorded(self) -> bool:
+        """Whether the window keeps its keyframes' recorded frames (``raw``)."""
+        return self.raw.shape[1:] == self.images.shape[1:]
 
 
 def frame_affine(reference: Float[Array, "2"], tracked: Float[Array, "2"]) -> Float[Array, "2"]:
@@ -131,23 +143,35 @@ def set_slot_pose(poses: Pose, slot, pose: Pose) -> Pose:
     return Pose(poses.q.at[slot].set(pose.q.astype(poses.q.dtype)), poses.t.at[slot].set(pose.t.astype(poses.t.dtype)))
 
 
-def add_keyframe(window: Window, image, T_world_kf: Pose, affine=(0.0, 0.0)) -> tuple[Window, int]:
+def add_keyframe(window: Window, image, T_world_kf: Pose, affine=(0.0, 0.0), raw=None,
+                 exposure: ExposureTrajectory | None = None) -> tuple[Window, int]:
     """``window`` with a new keyframe in its first free slot, and that slot. ``image``: (H, W) linear
-    radiance (a deblurred keyframe). Raises ArgumentError when the window is full or the size differs."""
+    radiance (a deblurred keyframe); ``raw``: the frame as recorded (None: ``image``; kept only by a
+    ``recorded`` window) and ``exposure`` its exposure path about ``T_world_kf`` (None: sharp).
+    Raises ArgumentError when the window is full, a size differs, or ``raw`` has nowhere to go."""
     valid = np.asarray(window.kf_valid)
     free = np.flatnonzero(~valid)
     if free.size == 0:
         raise ArgumentError(f"the window is full ({valid.size} keyframes): marginalise one first")
+    if raw is not None and not window.recorded:
+        raise ArgumentError("this window keeps no recorded frames: make it with Window.empty(..., recorded=True)")
     image = np.asarray(image, np.float32)
-    if image.shape != tuple(window.images.shape[1:]):
-        raise ArgumentError(f"keyframe image is {image.shape[1]}x{image.shape[0]}, the window holds "
-                            f"{window.images.shape[2]}x{window.images.shape[1]} images")
+    raw = image if raw is None else np.asarray(raw, np.float32)
+    for a in (image, raw):
+        if a.shape != tuple(window.images.shape[1:]):
+            raise ArgumentError(f"keyframe image is {a.shape[1]}x{a.shape[0]}, the window holds "
+                                f"{window.images.shape[2]}x{window.images.shape[1]} images")
     slot = int(free[0])
     dtype = window.images.dtype
+    identity = Pose.identity(dtype)
+    exposure = ExposureTrajectory(identity, identity) if exposure is None else exposure
     stamp = int(np.asarray(window.stamp).max()) + 1 if valid.any() else 0
     window = dataclasses.replace(
         window,
         images=window.images.at[slot].set(jnp.asarray(image, dtype)),
+        raw=window.raw.at[slot].set(jnp.asarray(raw, dtype)) if window.recorded else window.raw,
+        exposure=ExposureTrajectory(set_slot_pose(window.exposure.start, slot, exposure.start),
+                                    set_slot_pose(window.exposure.end, slot, exposure.end)),
         poses=set_slot_pose(window.poses, slot, T_world_kf),
         affine=window.affine.at[slot].set(jnp.asarray(affine, dtype)),
         kf_valid=window.kf_valid.at[slot].set(True),

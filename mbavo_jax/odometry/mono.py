@@ -29,6 +29,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from ..config import MonoConfig
 from ..deblur import exposure_blur_px
 from ..geometry import ExposureTrajectory, Pose, interpolate
 from ..image import delinearize, linearize, quantize16
@@ -214,8 +215,9 @@ class MonoPipeline(RGBDPipeline):
         two_view = rescaled(two_view, mono.start_scale(two_view, frame.timestamp - mono.reference[0]))
         velocity, rho = self.two_view_path(state, frame, two_view)
         stamp, (image, sharp) = mono.reference[0], self._first_image(state, two_view, velocity, rho)
-        window = Window.empty(cfg.mono.window, cfg.mono.points, self.camera.height, self.camera.width)
-        window, slot = add_keyframe(window, linearize(image, cfg.tracker.response_gamma), mono.origin)
+        window = Window.empty(cfg.mono.window, cfg.mono.points, self.camera.height, self.camera.width, recorded=self.ba.ba_blur_samples > 1)
+        raw = self.recorded_frame(mono.reference[1]) if window.recorded else None
+        window, slot = add_keyframe(window, linearize(image, cfg.tracker.response_gamma), mono.origin, raw=raw, exposure=velocity)
         window, _ = add_points(window, slot, two_view.pixels, two_view.idepth)
         candidates = [None] * cfg.mono.window
         candidates[slot] = select_candidates(linearize(image, cfg.tracker.response_gamma), cfg.mono.candidates, cfg.mono)
@@ -399,7 +401,8 @@ class MonoPipeline(RGBDPipeline):
         if len(mono.slots) >= cfg.mono.window:
             mono, cloud = self._marginalize_oldest(mono)
         image = linearize(new.image, cfg.tracker.response_gamma)
-        window, slot = add_keyframe(mono.window, image, new.T_world_kf, affine)
+        raw = self.recorded_frame(frame.image) if mono.window.recorded else None
+        window, slot = add_keyframe(mono.window, image, new.T_world_kf, affine, raw, self.keyframe_exposure(outcome, new.T_world_kf))
         cands = list(mono.candidates)
         cands[slot] = select_candidates(image, cfg.mono.candidates, cfg.mono)
         mono = self._activate(mono.replace(window=window, slots=(*mono.slots, slot), stamps=(*mono.stamps, new.stamp),
@@ -415,13 +418,31 @@ class MonoPipeline(RGBDPipeline):
         outcome = dataclasses.replace(outcome, points=cloud, backend_seconds=time.perf_counter() - t0, ba=report, note=note)
         return state, outcome
 
+    def recorded_frame(self, image) -> np.ndarray:
+        """A keyframe's recorded frame (display values) as a window that keeps them stores it."""
+        return linearize(quantize16(image), self.config.tracker.response_gamma)
+
+    def keyframe_exposure(self, outcome: FrameOutcome, T_world_kf: Pose) -> ExposureTrajectory | None:
+        """A new keyframe's exposure path about its pose ``T_world_kf`` (None where the frame has none)."""
+        if outcome.T_world_start is None or outcome.T_world_end is None:
+            return None
+        T_kf_world = T_world_kf.inverse()
+        return ExposureTrajectory(T_kf_world.compose(outcome.T_world_start), T_kf_world.compose(outcome.T_world_end))
+
+    @property
+    def ba(self) -> MonoConfig:
+        """The back-end's settings: ``config.mono`` with the adjustment's blur model off
+        (``ba_blur_samples`` = 1) when the tracker is blind to blur."""
+        mono = self.config.mono
+        return mono if self.config.tracker.blur_aware else dataclasses.replace(mono, ba_blur_samples=1)
+
     def _adjusted(self, window: Window, slot: int, note: str) -> tuple[Window, BAReport, str]:
         """(window, report, note): ``window`` bundle-adjusted. When the adjustment turns the new
         keyframe ``slot``'s view of the points by more than ``mono.ba_max_move`` of the width (its
         pose fitted to newly activated points that the adjustment then drops as outliers), it is
         run again from the start without those points; when that one jumps too, the window is left
         unadjusted (without them)."""
-        cfg, limit = self.config.mono, self.config.mono.ba_max_move * self.camera.width
+        cfg, limit = self.ba, self.config.mono.ba_max_move * self.camera.width
         adjusted, report = bundle_adjust(window, self.camera, cfg)
         moved = view_moved_px(self.camera, window, adjusted, slot)
         if moved <= limit:
@@ -438,7 +459,7 @@ class MonoPipeline(RGBDPipeline):
         information stays as a prior on the others."""
         slot = mono.slots[0]
         cloud = self.slot_points(mono, slot)
-        window = marginalize(mono.window, slot, self.camera, self.config.mono)
+        window = marginalize(mono.window, slot, self.camera, self.ba)
         cands = list(mono.candidates)
         cands[slot] = None
         return mono.replace(window=window, slots=mono.slots[1:], stamps=mono.stamps[1:], candidates=tuple(cands)), cloud

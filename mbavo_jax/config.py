@@ -380,6 +380,9 @@ class RuntimeConfig(Settings):
                                          "(vm.max_map_count): past it XLA cannot load another program and the process dies", FRACTION)
     checkpoint_every: int = setting(1, "monocular runs: write the --resume checkpoint (checkpoint.pkl) after every k-th frame; a resume "
                                     "goes on from the last one, the frames after it tracked again (0: none, no --resume)", NONNEG)
+    trim_memory: bool = setting(True, "after each frame, hand the memory that was freed back to the system (glibc's malloc_trim; "
+                                "nothing elsewhere), so that a long run's resident memory stays flat: else a new program's work "
+                                "buffers (a keyframe deblurred with more virtual frames) stay resident for the rest of the run")
 
 
 @dataclasses.dataclass(frozen=True)

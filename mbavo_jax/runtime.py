@@ -7,11 +7,14 @@ cache has a size limit: with one, JAX locks the folder around every read and wri
 processes sharing it (a sweep's workers, a test suite's) never load a half-written program.
 :func:`compile_counts` tells how many programs came from the cache and how many were compiled since
 the process started. :func:`make_room_for_programs` releases the programs a process holds before a
-run when their memory maps near the system's limit (a benchmark of many settings and image sizes).
+run when their memory maps near the system's limit (a benchmark of many settings and image sizes);
+:func:`release_free_memory` hands freed heap memory back to the system after each frame.
 """
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import gc
 import hashlib
 import os
@@ -27,7 +30,7 @@ from jax.experimental.compilation_cache import compilation_cache
 
 from .config import RuntimeConfig
 
-__all__ = ["cache_folder", "machine_key", "enable_compilation_cache", "compile_counts", "resident_mb", "memory_maps",
+__all__ = ["cache_folder", "machine_key", "enable_compilation_cache", "compile_counts", "resident_mb", "release_free_memory", "memory_maps",
            "make_room_for_programs"]
 
 _COUNTS = {"programs": 0, "cache_hits": 0, "compile_seconds": 0.0}
@@ -121,6 +124,22 @@ def resident_mb() -> float:
     except (OSError, ValueError, IndexError):
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
         return peak / (2**20 if sys.platform == "darwin" else 2**10)
+
+
+def release_free_memory() -> bool:
+    """Hand the heap memory that is free back to the system (glibc's ``malloc_trim(0)``); returns
+    whether it could (False where the C library is not glibc). glibc keeps freed blocks below its
+    mmap threshold for reuse, so a process's resident memory otherwise stays at its largest."""
+    trim = _malloc_trim()
+    return bool(trim is not None and trim(0) >= 0)
+
+
+@functools.lru_cache(maxsize=1)
+def _malloc_trim():
+    try:
+        return ctypes.CDLL(None).malloc_trim if sys.platform.startswith("linux") else None
+    except (OSError, AttributeError):  # not glibc (musl has no malloc_trim)
+        return None
 
 
 def memory_maps() -> tuple[int, int] | None:

@@ -130,3 +130,25 @@ def test_a_run_first_releases_the_programs_of_earlier_runs_near_the_memory_map_l
     assert out["compiled"] == 0 and out["hits"] > 10  # and came back from the compilation cache
     a, b = (np.loadtxt(tmp_path / run / "trajectory.txt") for run in "ab")
     assert out["tracked"][0] == out["tracked"][1] == len(a) and np.allclose(a, b, atol=1e-6)
+
+
+def test_freed_heap_memory_goes_back_to_the_system_only_when_released():
+    """Blocks freed in the middle of the heap stay resident (glibc keeps them for reuse) until
+    ``release_free_memory`` hands them back: what keeps a long run's memory flat (runtime.trim_memory)."""
+    script = textwrap.dedent("""
+        import json
+        from mbavo_jax.runtime import release_free_memory, resident_mb
+        base = resident_mb()
+        blocks = [bytearray(4096) for _ in range(40000)]  # about 160 MiB below glibc's mmap threshold
+        kept = blocks[15::16]  # every 16th block (the last one too) pins the heap around the freed ones
+        del blocks
+        freed = resident_mb()
+        released = release_free_memory()
+        print(json.dumps({"base": base, "freed": freed, "released": released, "after": resident_mb(), "kept": len(kept)}))
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    r = json.loads(done.stdout)
+    assert r["released"] is True
+    assert r["freed"] - r["base"] > 120, r  # freed but still resident
+    assert r["freed"] - r["after"] > 100, r  # handed back

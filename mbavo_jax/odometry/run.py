@@ -22,7 +22,7 @@ from ..geometry import Pose
 from ..image import quantize16
 from ..io import prepare_out_dir, read_tum_trajectory
 from ..progress import bar
-from ..runtime import compile_counts, enable_compilation_cache, make_room_for_programs
+from ..runtime import compile_counts, enable_compilation_cache, make_room_for_programs, release_free_memory
 from ..tracking import Keyframe, Status
 from ..tracking.memory import check_memory
 from .exposure import RawFrame, with_next
@@ -226,6 +226,8 @@ def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False
         for index in range(start, n_total):
             frame, before = seq[index], state
             state, outcome = pipeline.step(state, frame, index)
+            if config.runtime.trim_memory:
+                release_free_memory()
             outputs.write(outcome)
             every = config.runtime.checkpoint_every
             if checkpoints(pipeline) and every and ((index + 1) % every == 0 or index + 1 == n_total):

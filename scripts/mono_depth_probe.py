@@ -16,12 +16,13 @@ ground truth (medians per block of frames), and the ATE. ``--oracle`` sets each 
 the window to its true inverse depth at its host pixel, brought to the window's scale (the median
 ratio over the points already there). ``--keyframes`` changes how each new keyframe is deblurred
 (``estimated``: as the run does, with the PSNR of each deblurred keyframe against the generator's
-sharp render printed; ``true-depth``: with the true depth map; ``true-path``: with the true depth
+sharp render and how far the run's blur kernels are from the truth, :func:`kernel_error`, printed;
+``true-depth``: with the true depth map; ``true-path``: with the true depth
 and the true exposure path; ``sharp``: the sharp render itself). With ``--keyframes sharp``,
 ``--sharp-in tracker|ba|trace`` gives the sharp render to one part of the system only (the tracker's
 reference, the bundle adjustment's window, the candidates' traces; class ``SharpIn``). Used for "The
-collapse traced to the new points' depths", "Where the monocular depths go wrong" and "Extreme blur
-with sharp keyframes" in docs/benchmarks.md. Example:
+collapse traced to the new points' depths", "Where the monocular depths go wrong", "Extreme blur
+with sharp keyframes" and "The tracker's exposure path against the truth" in docs/benchmarks.md. Example:
 
     python scripts/mono_depth_probe.py runs/bench_extreme_640x480_seed0 --method mono_n64 --out /tmp/probe
 """
@@ -126,6 +127,43 @@ def oracle_activate(truth: Truth):
     return patched
 
 
+def blur_vectors(camera, path: ExposureTrajectory, depth: np.ndarray, stride: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """((N, 2) end minus start projection in pixels, (N,) valid) of a grid of pixels (every ``stride``-th)
+    at ``depth`` in the path's mid-exposure frame: each pixel's blur kernel as a segment."""
+    v, u = np.mgrid[stride // 2 : depth.shape[0] : stride, stride // 2 : depth.shape[1] : stride]
+    z = depth[v.ravel(), u.ravel()]
+    ok = np.isfinite(z) & (z > 0)
+    pixels = jnp.asarray(np.stack([u.ravel(), v.ravel()], 1), jnp.float32)
+    P = jax.vmap(camera.backproject)(pixels, jnp.asarray(np.where(ok, z, 1.0), jnp.float32))
+    path = path.about_middle()
+    at = lambda T: jax.vmap(camera.project)(jax.vmap(T.inverse().apply)(P))  # noqa: E731
+    return np.asarray(at(path.end) - at(path.start)), ok
+
+
+def kernel_error(camera, run_path: ExposureTrajectory, run_depth: np.ndarray, true_path: ExposureTrajectory,
+                 true_depth: np.ndarray) -> dict:
+    """The run's blur kernels (its path through its depth) against the truth's: the mean distance
+    between the kernels' segments over the mean true blur length (``kernel_err``), the ratio of the
+    mean lengths, the median angle between them (deg), and the angle between the two paths'
+    translations start -> end (deg; the scale does not matter). Whole paths: a rolling shutter's
+    readout is not split out."""
+    vr, ok_r = blur_vectors(camera, run_path, run_depth)
+    vt, ok_t = blur_vectors(camera, true_path, true_depth)
+    ok = ok_r & ok_t
+    if ok.sum() < 3:
+        return {}
+    vr, vt = vr[ok], vt[ok]
+    length = np.linalg.norm(vt, axis=1).mean()
+    cos = (vr * vt).sum(1) / (np.linalg.norm(vr, axis=1) * np.linalg.norm(vt, axis=1) + 1e-9)
+    move = lambda p: np.asarray(p.start.inverse().compose(p.end).t)  # noqa: E731
+    a, b = move(run_path), move(true_path)
+    t_cos = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12))
+    return {"blur_px": round(float(length), 1), "kernel_err": round(float(np.linalg.norm(vr - vt, axis=1).mean() / length), 3),
+            "length_ratio": round(float(np.linalg.norm(vr, axis=1).mean() / length), 3),
+            "angle_deg": round(float(np.degrees(np.median(np.arccos(np.clip(cos, -1.0, 1.0))))), 1),
+            "t_dir_err_deg": round(float(np.degrees(np.arccos(np.clip(t_cos, -1.0, 1.0)))), 1)}
+
+
 def keyframe_deblurring(truth: Truth, how: str):
     """``RGBDPipeline.deblurred`` that deblurs a keyframe as ``how`` says (module docstring) and
     prints its PSNR against the sharp render; the frame is found by its image (the pipeline passes
@@ -143,14 +181,16 @@ def keyframe_deblurring(truth: Truth, how: str):
         sharp = read_image_gray(pathlib.Path(seq.path) / "sharp" / f"{frame.timestamp:.6f}.png")
         if how == "sharp":  # n: what the triptych's blur model uses
             return quantize16(sharp), choose_deblur_n(depth, self.camera, path, self.config.deblur, readout)
+        _, j = associate(np.array([frame.timestamp]), stamps, truth.max_diff)
+        true_path = ExposureTrajectory(pose(starts[int(j[0])]), pose(ends[int(j[0])]))
+        kernel = kernel_error(self.camera, path, np.asarray(depth), true_path, truth.depth(frame.timestamp)) if how == "estimated" else {}
         if how in ("true-depth", "true-path"):
             depth = truth.depth(frame.timestamp)
         if how == "true-path":
-            _, j = associate(np.array([frame.timestamp]), stamps, truth.max_diff)
-            path = ExposureTrajectory(pose(starts[int(j[0])]), pose(ends[int(j[0])]))
+            path = true_path
         out, n = deblurred(self, image, depth, path, readout)
-        print(json.dumps({"deblurred": i, "psnr_blurry": round(psnr(image, sharp), 2), "psnr_deblurred": round(psnr(out, sharp), 2)}),
-              flush=True)
+        print(json.dumps({"deblurred": i, "psnr_blurry": round(psnr(image, sharp), 2), "psnr_deblurred": round(psnr(out, sharp), 2),
+                          **kernel}), flush=True)
         return out, n
 
     return patched

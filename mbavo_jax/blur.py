@@ -34,7 +34,7 @@ from .geometry.transfer import plane_point, plane_transfer
 from .image import bilinear_with_gradient
 
 __all__ = ["virtual_pq", "virtual_pq_table", "virtual_sample", "per_pixel_poses", "synthesize", "blend", "reblur", "render_blurry",
-           "plane_depths_from_keyframe", "blur_lengths", "round_up_frames"]
+           "plane_depths_from_keyframe", "blur_segments", "blur_lengths", "round_up_frames"]
 
 RENDER_CHUNK = 4096  # pixels per chunk of ``render_blurry`` (n x chunk samples live at once)
 
@@ -206,12 +206,12 @@ def _render_blurry(keyframe, plane_depths, camera: PinholeCamera, trajectory, re
     return jnp.where(valid, values, 0.0).reshape(h, w), valid.reshape(h, w)
 
 
-def blur_lengths(
+def blur_segments(
     camera: PinholeCamera, pixels: Float[Array, "N 2"], depths: Float[Array, " N"], trajectory: ExposureTrajectory
-) -> tuple[Float[Array, " N"], Bool[Array, " N"]]:
-    """Blur length of each point (pixels): the distance between its projections at the exposure's
-    start and end, for points at ``pixels``/``depths`` of the trajectory's reference frame. Returns
-    (lengths, valid); invalid (no depth, behind a camera) lengths are 0, never NaN."""
+) -> tuple[Float[Array, "N 2"], Bool[Array, " N"]]:
+    """Blur kernel of each point as a segment (pixels): its projection at the exposure's end minus
+    that at the start, for points at ``pixels``/``depths`` of the trajectory's reference frame.
+    Returns (segments, valid); invalid (no depth, behind a camera) segments are 0, never NaN."""
     ok_d = jnp.isfinite(depths) & (depths > 0)
     P = jax.vmap(camera.backproject)(pixels, jnp.where(ok_d, depths, 1.0))
 
@@ -223,7 +223,16 @@ def blur_lengths(
     xs, fs = at(trajectory.start)
     xe, fe = at(trajectory.end)
     valid = ok_d & fs & fe
-    return jnp.where(valid, jnp.linalg.norm(xs - xe, axis=1), 0.0), valid
+    return jnp.where(valid[:, None], xe - xs, 0.0), valid
+
+
+def blur_lengths(
+    camera: PinholeCamera, pixels: Float[Array, "N 2"], depths: Float[Array, " N"], trajectory: ExposureTrajectory
+) -> tuple[Float[Array, " N"], Bool[Array, " N"]]:
+    """Blur length of each point (pixels): the length of its :func:`blur_segments` segment.
+    Returns (lengths, valid); invalid lengths are 0, never NaN."""
+    segments, valid = blur_segments(camera, pixels, depths, trajectory)
+    return jnp.where(valid, jnp.linalg.norm(segments, axis=1), 0.0), valid
 
 
 def round_up_frames(need: float, lo: int, hi: int, step: int = 0) -> int:

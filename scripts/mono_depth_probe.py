@@ -33,10 +33,10 @@ import json
 import pathlib
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mbavo_jax.blur import blur_segments
 from mbavo_jax.bench_mono import MONO_METHODS, mono_configs, trajectory_scores
 from mbavo_jax.config import TrackerConfig, calibration_of, load_config
 from mbavo_jax.datasets import open_sequence
@@ -128,16 +128,13 @@ def oracle_activate(truth: Truth):
 
 
 def blur_vectors(camera, path: ExposureTrajectory, depth: np.ndarray, stride: int = 16) -> tuple[np.ndarray, np.ndarray]:
-    """((N, 2) end minus start projection in pixels, (N,) valid) of a grid of pixels (every ``stride``-th)
-    at ``depth`` in the path's mid-exposure frame: each pixel's blur kernel as a segment."""
+    """((N, 2) blur segments in pixels, (N,) valid) of a grid of pixels (every ``stride``-th) at
+    ``depth`` in the path's mid-exposure frame (``blur.blur_segments``)."""
     v, u = np.mgrid[stride // 2 : depth.shape[0] : stride, stride // 2 : depth.shape[1] : stride]
-    z = depth[v.ravel(), u.ravel()]
-    ok = np.isfinite(z) & (z > 0)
     pixels = jnp.asarray(np.stack([u.ravel(), v.ravel()], 1), jnp.float32)
-    P = jax.vmap(camera.backproject)(pixels, jnp.asarray(np.where(ok, z, 1.0), jnp.float32))
-    path = path.about_middle()
-    at = lambda T: jax.vmap(camera.project)(jax.vmap(T.inverse().apply)(P))  # noqa: E731
-    return np.asarray(at(path.end) - at(path.start)), ok
+    z = jnp.asarray(depth[v.ravel(), u.ravel()], jnp.float32)
+    segments, ok = blur_segments(camera, pixels, z, path.about_middle())
+    return np.asarray(segments), np.asarray(ok)
 
 
 def kernel_error(camera, run_path: ExposureTrajectory, run_depth: np.ndarray, true_path: ExposureTrajectory,

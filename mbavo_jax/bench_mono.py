@@ -7,7 +7,10 @@ keyframes, and seconds per frame split into tracking, the back-end (candidates, 
 marginalisation) and the rest (deblurring, I/O), and the seconds of that spent compiling or loading
 programs (a run at an image size the process has not seen yet pays it). With ``--seeds``, each
 preset again at more seeds, and a second table of each method's mean ATE over the seeds (also in
-``seed_means.json`` beside ``results.json``).
+``seed_means.json`` beside ``results.json``). With ``--draws K``, each method runs K times on each
+sequence, at K Huber thresholds a part in a thousand apart (``config.HUBER_DRAWS``): a monocular run
+can keep or lose its scale on a rounding-sized change, and the mean over the draws is what the
+second table then compares.
 """
 
 from __future__ import annotations
@@ -21,13 +24,13 @@ import time
 
 import numpy as np
 
-from .config import BenchConfig, EvalConfig, RunConfig, TrackerConfig, calibration_of
+from .config import HUBER_DRAWS, BenchConfig, EvalConfig, RunConfig, TrackerConfig, calibration_of
 from .datasets import open_sequence
 from .errors import MbavoError
 from .io import read_tum_trajectory
 
-__all__ = ["MONO_METHODS", "mono_configs", "run_mono_benchmark", "format_mono_table", "format_seed_table", "main_mono", "seed_groups",
-           "seed_means", "trajectory_scores"]
+__all__ = ["MONO_METHODS", "mono_configs", "draw_huber", "run_draws", "run_mono_benchmark", "format_mono_table", "format_seed_table",
+           "main_mono", "seed_groups", "seed_means", "trajectory_scores"]
 
 MONO_METHODS = ("mono_n64", "mono_adaptive", "mono_n1", "rgbd_n64")
 
@@ -92,10 +95,36 @@ def run_method(seq, run: pathlib.Path, config: RunConfig, progress: bool) -> dic
             "compile_s": after["compile_seconds"] - before["compile_seconds"], "compiled": after["compiled"] - before["compiled"]}
 
 
+def draw_huber(huber: float, d: int) -> float:
+    """The Huber threshold of draw ``d``: ``HUBER_DRAWS[d]`` for the default threshold, else
+    ``huber`` scaled by ``HUBER_DRAWS[d] / HUBER_DRAWS[0]``."""
+    return HUBER_DRAWS[d] if huber == HUBER_DRAWS[0] else huber * HUBER_DRAWS[d] / HUBER_DRAWS[0]
+
+
+def run_draws(seq, folder: pathlib.Path, config: RunConfig, draws: int = 1, progress: bool = True) -> dict:
+    """:func:`run_method` at the first ``draws`` Huber draws (:func:`draw_huber`; draw 0 is
+    ``config`` itself, in ``folder``, the others in ``<folder>_huber<h>``). Returns draw 0's row;
+    with ``draws`` > 1 it adds ``draws`` (each run's threshold, ATE in % or None, frames dropped)
+    and ``ate_pct_mean``, the mean ATE of the draws that scored (None when none did)."""
+    rows = []
+    for d in range(draws):
+        h = draw_huber(config.tracker.huber, d)
+        if progress and draws > 1:
+            print(f"  draw {d + 1} of {draws}: tracker.huber {h:.7f}", file=sys.stderr)
+        cfg = config if d == 0 else config.replace(tracker=dict(huber=h))
+        rows.append((h, run_method(seq, folder if d == 0 else folder.with_name(f"{folder.name}_huber{h:.7f}"), cfg, progress)))
+    if draws == 1:
+        return rows[0][1]
+    per = [{"huber": h, "ate_pct": r.get("ate_pct"), "dropped": r["dropped"]} for h, r in rows]
+    scored = [p["ate_pct"] for p in per if p["ate_pct"] is not None]
+    return {**rows[0][1], "draws": per, "ate_pct_mean": float(np.mean(scored)) if scored else None}
+
+
 def run_mono_benchmark(sequences: dict, out_root, methods=MONO_METHODS, progress: bool = True,
-                       tracker_overrides: dict | None = None) -> dict:
-    """Each of ``methods`` on each sequence (name -> folder); ``rgbd_*`` only where there is depth.
-    ``out_root/results.json`` holds every finished run's scores as soon as it finishes."""
+                       tracker_overrides: dict | None = None, draws: int = 1) -> dict:
+    """Each of ``methods`` on each sequence (name -> folder), at ``draws`` Huber draws
+    (:func:`run_draws`); ``rgbd_*`` only where there is depth. ``out_root/results.json`` holds
+    every finished method's scores as soon as it finishes."""
     unknown = [m for m in methods if m not in MONO_METHODS]
     if unknown:
         raise MbavoError(f"unknown method {', '.join(unknown)} (choose from {', '.join(MONO_METHODS)})")
@@ -111,7 +140,7 @@ def run_mono_benchmark(sequences: dict, out_root, methods=MONO_METHODS, progress
             if progress:
                 print(f"{name}: {method}", file=sys.stderr)
             try:
-                row[method] = run_method(seq, root / name / method, config, progress)
+                row[method] = run_draws(seq, root / name / method, config, draws, progress)
             except MbavoError as exc:
                 row[method] = {"error": str(exc)}
             (root / "results.json").write_text(json.dumps(results, indent=2))
@@ -129,14 +158,26 @@ def _cell(r: dict) -> str:
             f"back-end/kf {r['backend_s_per_keyframe']:.2f}; compiling {r['compile_s']:.0f} s)")
 
 
+def _draws_cell(r: dict) -> str:
+    """The ATE over a run's draws: the mean, the range, how many scored, the frames they dropped."""
+    ates = [p["ate_pct"] for p in r["draws"] if p["ate_pct"] is not None]
+    spread = f"{r['ate_pct_mean']:.2f} % ({min(ates):.2f}-{max(ates):.2f}), " if ates else ""
+    return f"{spread}{len(ates)} of {len(r['draws'])} scored, {sum(p['dropped'] for p in r['draws'])} dropped"
+
+
 def format_mono_table(results: dict) -> str:
-    """A markdown table: one row per sequence and method."""
+    """A markdown table: one row per sequence and method (with draws, a last column: the ATE over
+    them, :func:`_draws_cell`)."""
+    several = any("draws" in r for row in results.values() for r in row.values())
     lines = ["| sequence | method | ATE Sim(3) (% of path) | drift per 10 frames (trans / scale) | frames without pose | "
-             "s per frame (track, BA, other; BA per keyframe; compiling in all) |", "|---|---|---|---|---|---|"]
+             "s per frame (track, BA, other; BA per keyframe; compiling in all) |"
+             + (" over the draws: mean ATE (range) |" if several else ""),
+             "|---|---|---|---|---|---|" + ("---|" if several else "")]
     for name, row in results.items():
         for method, r in row.items():
             parts = _cell(r).split(" | ")
-            lines.append(f"| {name} | {method} | " + " | ".join(parts + [""] * (4 - len(parts))) + " |")
+            parts = parts + [""] * (4 - len(parts)) + ([_draws_cell(r) if "draws" in r else ""] if several else [])
+            lines.append(f"| {name} | {method} | " + " | ".join(parts) + " |")
     return "\n".join(lines)
 
 
@@ -156,8 +197,8 @@ def main_mono(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
         seqs["tum_xyz_blurred"] = tum_blurred(cfg, quiet)
     methods = [m for m in cfg.methods.split(",") if m] or MONO_METHODS
     root = pathlib.Path(cfg.out if cfg.out != BenchConfig().out else "runs/bench_mono")
-    results = run_mono_benchmark(seqs, root, methods, progress=not quiet)
-    names, several = {p: [f"{n}_noexp" for n in named] for p, named in groups.items()}, len(cfg.seed_list()) > 1
+    results = run_mono_benchmark(seqs, root, methods, progress=not quiet, draws=cfg.draws)
+    names, several = {p: [f"{n}_noexp" for n in named] for p, named in groups.items()}, len(cfg.seed_list()) > 1 or cfg.draws > 1
     if several:
         (root / "seed_means.json").write_text(json.dumps({p: seed_means(results, n) for p, n in names.items()}, indent=2))
     if fmt == "json":
@@ -174,15 +215,20 @@ def seed_groups(cfg: BenchConfig) -> dict[str, dict[str, int]]:
     return {p: {(p if s == cfg.seed else f"{p}_s{s}"): s for s in seeds} for p in cfg.presets.split(",") if p}
 
 
+def _ate(r: dict) -> float | None:
+    """A run's ATE (% of path): the mean over its draws when it has them; None when unscored."""
+    return r.get("ate_pct_mean") if "draws" in r else r.get("ate_pct")
+
+
 def seed_means(results: dict, names: list[str]) -> dict[str, dict]:
-    """Per method, over the sequences ``names`` it ran on: the mean ATE (% of path) of those it
-    scored, how many, and against mono_n1 on the sequences both scored: the ratio of their mean ATEs
-    and each sequence's ratio."""
+    """Per method, over the sequences ``names`` it ran on: the mean ATE (% of path; a sequence
+    with draws counts with its mean over them) of those it scored, how many, and against mono_n1 on
+    the sequences both scored: the ratio of their mean ATEs and each sequence's ratio."""
     out = {}
     for method in dict.fromkeys(m for n in names for m in results.get(n, {})):
-        rows = [(results[n][method], results[n].get("mono_n1", {})) for n in names if method in results.get(n, {})]
-        scored = [r["ate_pct"] for r, _ in rows if "ate_pct" in r]
-        paired = np.array([(r["ate_pct"], b["ate_pct"]) for r, b in rows if "ate_pct" in r and "ate_pct" in b]).reshape(-1, 2)
+        rows = [(_ate(results[n][method]), _ate(results[n].get("mono_n1", {}))) for n in names if method in results.get(n, {})]
+        scored = [a for a, _ in rows if a is not None]
+        paired = np.array([(a, b) for a, b in rows if a is not None and b is not None]).reshape(-1, 2)
         out[method] = {"mean_ate_pct": float(np.mean(scored)) if scored else float("nan"), "scored": len(scored), "runs": len(rows),
                        "ratio": float(paired[:, 0].mean() / paired[:, 1].mean()) if len(paired) else float("nan"),
                        "ratios": [float(a / b) for a, b in paired]}

@@ -23,7 +23,7 @@ from .errors import ConfigError
 __all__ = [
     "setting", "TrackerConfig", "OdometryConfig", "DeblurConfig", "EvalConfig", "RunConfig", "SynthConfig",
     "BenchConfig", "SweepConfig", "MonoConfig", "RuntimeConfig", "PRESETS", "DEPTH_SIGMA", "load_config", "default_yaml", "settings_markdown", "add_arguments",
-    "from_arguments", "as_dict", "calibration_of",
+    "from_arguments", "as_dict", "calibration_of", "HUBER_DRAWS",
 ]
 
 
@@ -456,6 +456,12 @@ PRESETS: dict[str, dict] = {
 }
 
 
+HUBER_DRAWS = (9.0 / 255.0, 0.035294, 0.03533, 0.03526, 0.03537, 0.03522, 0.0354)
+"""Huber thresholds a part in a thousand apart, the default first: the draws of ``bench mono --draws`` and
+``scripts/ate_draws.py``. Each changes every robust weight by a rounding-sized amount and nothing else, so
+the spread of a run's score over them is its noise floor."""
+
+
 @dataclasses.dataclass(frozen=True)
 class BenchConfig(Settings):
     """``mbavo bench tracking | odometry | mono | rolling-shutter``: which data, which methods."""
@@ -472,6 +478,9 @@ class BenchConfig(Settings):
     seed: int = setting(0, "seed of generated sequences", NONNEG)
     seeds: str = setting("", "mono: more seeds of the generated presets, comma-separated (rows <preset>_s<seed>_noexp); the "
                          "output adds each method's mean ATE over all seeds and its ratio to mono_n1 ('': none)")
+    draws: int = setting(1, "mono: runs of each method on each sequence, each at another Huber draw (HUBER_DRAWS, scaled to "
+                         "tracker.huber); above 1 the table adds each run's mean ATE over its draws, and the means over seeds use it",
+                         AT_LEAST_1)
     out: str = setting("runs/bench_odometry", "odometry: output folder")
     methods: str = setting("", "odometry: comma-separated subset of the methods (default all)")
     depth_weight: float = setting(0.03, "odometry: tracker.depth_weight of the *_depth methods", NONNEG)
@@ -492,7 +501,8 @@ class BenchConfig(Settings):
 
     def relations(self) -> list[str]:
         bad = [s for s in self.seeds.split(",") if s.strip() and not s.strip().isdigit()]
-        return [f"seeds: not a non-negative integer: {', '.join(bad)}"] if bad else []
+        out = [f"seeds: not a non-negative integer: {', '.join(bad)}"] if bad else []
+        return out + ([f"draws: at most {len(HUBER_DRAWS)}"] if self.draws > len(HUBER_DRAWS) else [])
 
     def seed_list(self) -> list[int]:
         """``seed`` and then the other ``seeds``, each once."""

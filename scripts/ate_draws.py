@@ -18,11 +18,9 @@ import pathlib
 import numpy as np
 
 from mbavo_jax.bench import _ate
-from mbavo_jax.config import calibration_of, load_config
+from mbavo_jax.config import HUBER_DRAWS, calibration_of, load_config
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.odometry import run_odometry
-
-DRAWS = (9.0 / 255.0, 0.035294, 0.03533, 0.03526, 0.03537, 0.03522, 0.0354)  # the default first
 
 
 def main() -> None:
@@ -32,7 +30,7 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     ap.add_argument("--variant", action="append", default=[],
                     help="NAME=section.key=value;section.key=value (repeatable; none: the defaults alone)")
-    ap.add_argument("--draws", default=",".join(str(h) for h in DRAWS), help="Huber thresholds, comma-separated")
+    ap.add_argument("--draws", default=",".join(str(h) for h in HUBER_DRAWS), help="Huber thresholds, comma-separated")
     args = ap.parse_args()
     seq = open_sequence(args.sequence)
     variants = dict(v.split("=", 1) for v in args.variant) or {"default": ""}

@@ -250,6 +250,42 @@ def test_the_bench_defaults_find_the_real_clips_from_any_folder(tmp_path, monkey
     assert real_clip("../nowhere/clip") == pathlib.Path("../nowhere/clip")
 
 
+def test_the_bench_draws_run_each_method_at_each_huber_draw_and_the_seed_means_use_their_mean(tmp_path, monkeypatch):
+    """``bench mono --draws K``: draw 0 is the run as configured, in the method's folder; draw d the
+    tracker's Huber threshold times HUBER_DRAWS[d] / HUBER_DRAWS[0], in its own folder. The row is
+    draw 0's with every draw's ATE and the mean of those that scored, which the seed means use."""
+    from mbavo_jax import bench_mono as bm
+    from mbavo_jax.config import HUBER_DRAWS
+
+    calls = []
+    ates = iter([2.0, None, 4.0])
+
+    def fake_run(seq, run, config, progress):
+        calls.append((run.name, config.tracker.huber))
+        ate = next(ates)
+        return {"dropped": int(ate is None), **({} if ate is None else {"ate_pct": ate, "ate_rmse_m": ate / 100})}
+
+    monkeypatch.setattr(bm, "run_method", fake_run)
+    row = bm.run_draws(None, tmp_path / "mono_n64", RunConfig(), draws=3, progress=False)
+    assert calls == [("mono_n64", HUBER_DRAWS[0]), (f"mono_n64_huber{HUBER_DRAWS[1]:.7f}", HUBER_DRAWS[1]),
+                     (f"mono_n64_huber{HUBER_DRAWS[2]:.7f}", HUBER_DRAWS[2])]
+    assert row["ate_pct"] == 2.0 and row["ate_pct_mean"] == pytest.approx(3.0)
+    assert [d["ate_pct"] for d in row["draws"]] == [2.0, None, 4.0] and [d["dropped"] for d in row["draws"]] == [0, 1, 0]
+    assert bm.draw_huber(0.05, 2) == pytest.approx(0.05 * HUBER_DRAWS[2] / HUBER_DRAWS[0]) and bm.draw_huber(HUBER_DRAWS[0], 3) == HUBER_DRAWS[3]
+    calls.clear()
+    ates = iter([5.0])
+    assert bm.run_draws(None, tmp_path / "mono_n1", RunConfig(), draws=1, progress=False) == {"dropped": 0, "ate_pct": 5.0, "ate_rmse_m": 0.05}
+    results = {"a": {"mono_n64": row, "mono_n1": {"ate_pct": 6.0, "draws": [], "ate_pct_mean": 1.5}}}
+    assert bm.seed_means(results, ["a"])["mono_n64"]["ratio"] == pytest.approx(2.0)  # 3.0 against 1.5: the means over draws
+    with pytest.raises(Exception, match=f"draws: at most {len(HUBER_DRAWS)}"):
+        BenchConfig(draws=len(HUBER_DRAWS) + 1)
+    results["a"]["mono_n64"].update(drift_trans_pct=1.0, drift_scale_pct=1.0, initialising=0, keyframes=4, seconds_per_frame=1.0,
+                                    track_s_per_frame=0.5, backend_s_per_frame=0.3, other_s_per_frame=0.2, backend_s_per_keyframe=1.0,
+                                    compile_s=0.0)
+    table = bm.format_mono_table(results)
+    assert "over the draws: mean ATE (range)" in table and "| 3.00 % (2.00-4.00), 2 of 3 scored, 1 dropped |" in table
+
+
 def test_the_bench_means_over_seeds_compare_only_sequences_both_methods_scored():
     """``bench mono --seeds``: the presets' sequences at each seed (the base seed keeps the plain
     name), and per method the mean ATE over the seeds it scored, its ratio to mono_n1 over the

@@ -230,9 +230,12 @@ def blur_lengths(
     camera: PinholeCamera, pixels: Float[Array, "N 2"], depths: Float[Array, " N"], trajectory: ExposureTrajectory
 ) -> tuple[Float[Array, " N"], Bool[Array, " N"]]:
     """Blur length of each point (pixels): the length of its :func:`blur_segments` segment.
-    Returns (lengths, valid); invalid lengths are 0, never NaN."""
+    Returns (lengths, valid); invalid lengths are 0, never NaN, and so is the gradient of a zero
+    length (a double ``where`` around the square root)."""
     segments, valid = blur_segments(camera, pixels, depths, trajectory)
-    return jnp.where(valid, jnp.linalg.norm(segments, axis=1), 0.0), valid
+    sq = jnp.sum(segments * segments, axis=1)
+    moved = valid & (sq > 0)
+    return jnp.where(moved, jnp.sqrt(jnp.where(moved, sq, 1.0)), 0.0), valid
 
 
 def round_up_frames(need: float, lo: int, hi: int, step: int = 0) -> int:

@@ -144,3 +144,21 @@ def test_blur_segments_point_along_the_motion_and_give_the_blur_lengths():
     np.testing.assert_allclose(np.asarray(segments[1:]), np.tile([-2.0, 0.0], (pixels.shape[0] - 1, 1)), atol=1e-4)
     np.testing.assert_array_equal(np.asarray(segments[0]), [0.0, 0.0])
     np.testing.assert_allclose(np.asarray(lengths), np.linalg.norm(np.asarray(segments), axis=1), rtol=1e-6)
+
+
+def test_blur_lengths_have_a_finite_gradient_where_the_camera_does_not_move():
+    """At a still exposure every segment is zero; the gradient of the lengths' sum with respect to
+    the end pose is then finite (not NaN from the norm at 0), and away from it matches finite differences."""
+    cam = PinholeCamera.create(100.0, 100.0, 64.0, 48.0, 128, 96)
+    pixels = _pixels(cam)
+    depths = jnp.full(pixels.shape[0], 2.0, jnp.float32)
+
+    def total(delta):
+        traj = ExposureTrajectory(Pose.identity(), Pose.identity().plus(delta))
+        return jnp.sum(blur_lengths(cam, pixels, depths, traj)[0])
+
+    assert np.isfinite(np.asarray(jax.grad(total)(jnp.zeros(6, jnp.float32)))).all()
+    delta = jnp.array([0.0, 0.0, 0.0, 0.02, 0.0, 0.0], jnp.float32)
+    step = jnp.array([0.0, 0.0, 0.0, 1e-3, 0.0, 0.0], jnp.float32)
+    numeric = (total(delta + step) - total(delta - step)) / 2e-3
+    np.testing.assert_allclose(float(jax.grad(total)(delta)[3]), float(numeric), rtol=1e-2)

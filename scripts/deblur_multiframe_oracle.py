@@ -26,7 +26,7 @@ import numpy as np
 
 from mbavo_jax.blur import blur_segments, plane_depths_from_keyframe, render_blurry
 from mbavo_jax.datasets import open_sequence
-from mbavo_jax.deblur import psnr
+from mbavo_jax.deblur import _cg, _grad_ops, psnr  # the solver deblur uses, for one frame or several
 from mbavo_jax.geometry import ExposureTrajectory, Pose
 
 N = 64  # virtual frames
@@ -47,22 +47,11 @@ def operator(seq, k: int, j: int):
 
 
 def solve(ops, blurry, x0, lam: float, iterations: int):
-    """The normal equations of the multi-frame problem by conjugate gradients from x0."""
-    def reg(x):  # ∇ᵀ∇x
-        return jax.grad(lambda z: 0.5 * (jnp.sum(jnp.diff(z, axis=0) ** 2) + jnp.sum(jnp.diff(z, axis=1) ** 2)))(x)
-
+    """The normal equations of the multi-frame problem: ``deblur``'s conjugate gradients from x0."""
+    reg = jax.grad(lambda z: 0.5 * sum(jnp.sum(g * g) for g in _grad_ops(z)))  # ∇ᵀ∇x, deblur's penalty
     normal = jax.jit(lambda x: sum(at(jnp.where(v, a(x), 0.0)) for a, at, v in ops) / len(ops) + lam * reg(x))
     rhs = sum(at(jnp.where(v, b, 0.0)) for (a, at, v), b in zip(ops, blurry)) / len(ops)
-    x = x0
-    r = rhs - normal(x)
-    p, rs = r, jnp.sum(r * r)
-    for _ in range(iterations):
-        ap = normal(p)
-        alpha = rs / jnp.sum(p * ap)
-        x, r = x + alpha * p, r - alpha * ap
-        rs, rs_old = jnp.sum(r * r), rs
-        p = r + (rs / rs_old) * p
-    return np.asarray(x)
+    return np.asarray(_cg(normal, rhs - normal(x0), x0, iterations)[0])
 
 
 def main() -> None:

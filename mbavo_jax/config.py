@@ -456,8 +456,8 @@ PRESETS: dict[str, dict] = {
 }
 
 
-HUBER_DRAWS = (9.0 / 255.0, 0.035294, 0.03533, 0.03526, 0.03537, 0.03522, 0.0354)
-"""Huber thresholds a part in a thousand apart, the default first: the draws of ``bench mono --draws`` and
+HUBER_DRAWS = (TrackerConfig().huber, 0.035294, 0.03533, 0.03526, 0.03537, 0.03522, 0.0354)
+"""Huber thresholds a part in a thousand apart, the default (9/255) first: the draws of ``bench mono --draws`` and
 ``scripts/ate_draws.py``. Each changes every robust weight by a rounding-sized amount and nothing else, so
 the spread of a run's score over them is its noise floor."""
 

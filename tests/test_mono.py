@@ -5,6 +5,7 @@ outputs (points.ply among them), initialisation notes, a textureless start and a
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import pathlib
 import shutil
@@ -143,17 +144,31 @@ def test_python_api_runs_the_monocular_pipeline(seq_dir, tmp_path):
 def test_the_exposure_probe_starts_a_monocular_run_from_an_estimate_not_the_guess(seq_dir, monkeypatch):
     """Without exposure times the monocular loop first runs blind over the first frames (nothing
     deblurred, nothing written) until its estimate settles: the run starts from those samples (true
-    fraction 0.75, the guess 0.5), not from the guess. Off with ``mono.exposure_probe=0`` and for a
-    loop blind to blur."""
+    fraction 0.75, the guess 0.5), not from the guess, and the probe stops at the first frame whose
+    estimate meets the settling rule. The rule itself is tested on constructed samples in
+    test_exposure.py; here it is met with a wide margin (three samples within 0.3 of the frame interval
+    where they spread by under 0.1), so the stop does not hang on a sample's last digits. Off with
+    ``mono.exposure_probe=0`` and for a loop blind to blur."""
+    import mbavo_jax.odometry.mono as odo_mono
+
     seq = open_sequence(seq_dir)
-    settings = ["odometry.mode=mono", "odometry.exposure_pair_ratio=1.2"]  # this short path changes speed by less than 1.3x in 6 frames
+    settings = ["odometry.mode=mono", "odometry.exposure_pair_ratio=1.2",  # this short path changes speed by less than 1.3x in 6 frames
+                "odometry.exposure_settled=0.3"]
+    monkeypatch.setattr(odo_mono, "SETTLED_SAMPLES", 3)
     monkeypatch.setattr(MonoPipeline, "deblurred", lambda *a, **k: (_ for _ in ()).throw(AssertionError("the probe deblurred")))
+    asked = []  # (samples so far, the rule's answer) each time the loop asks
+    rule = MonoPipeline.probe_done
+    monkeypatch.setattr(MonoPipeline, "probe_done", lambda self, state: asked.append((self.estimate(state).count, rule(self, state))) or asked[-1][1])
     pipeline = MonoPipeline(seq.camera, load_config(None, settings))
     start = pipeline.start_state(seq)
     true_fraction = PRESETS["strong"]["exposure_ms"] / 1000 * SynthConfig().fps
     assert start.exposure is not None and start.exposure.count >= 3 and start.tracked == 0 and start.backend is None
     assert abs(start.exposure.fraction() - true_fraction) < abs(pipeline.config.odometry.exposure_guess - true_fraction), start.exposure
-    assert pipeline.probe_done(start) and start.probed_until < seq[FRAMES - 1].timestamp  # settled: it stopped early
+    answers = [done for _, done in asked]
+    assert answers[-1] and not any(answers[:-1]), asked  # it ran until the rule first held, and stopped there
+    assert asked[-1][0] == start.exposure.count == 3 and len(asked) < FRAMES and start.probed_until == seq[len(asked) - 1].timestamp
+    fractions = [dataclasses.replace(start.exposure, samples=start.exposure.samples[:k]).fraction() for k in (1, 2, 3)]
+    assert max(fractions) - min(fractions) < 0.3 / 2, fractions  # the margin the test relies on
     assert MonoPipeline(seq.camera, load_config(None, [*settings, "mono.exposure_probe=0"])).start_state(seq).exposure is None
     assert MonoPipeline(seq.camera, load_config(None, [*settings, "tracker.blur_aware=false"])).start_state(seq).exposure is None
 

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mbavo_jax.bench_mono import trajectory_scores
+from mbavo_jax.bench.mono import trajectory_scores
 from mbavo_jax.config import BenchConfig, EvalConfig, RunConfig, load_config
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.geometry import ExposureTrajectory, PinholeCamera, Pose
@@ -249,7 +249,7 @@ def test_the_bench_defaults_find_the_real_clips_from_any_folder(tmp_path, monkey
     """``--tum`` / ``--kitti`` default to ``../shared/data/...``: from a folder without that path the
     clip is looked up by name in the shared data folder; a path that exists is kept; an unknown one
     comes back unchanged (the loader then says it is missing)."""
-    from mbavo_jax.bench import real_clip
+    from mbavo_jax.bench.sequences import real_clip
 
     from .conftest import shared_dataset
 
@@ -269,7 +269,7 @@ def test_the_bench_draws_run_each_method_at_each_huber_draw_and_the_seed_means_u
     """``bench mono --draws K``: draw 0 is the run as configured, in the method's folder; draw d the
     tracker's Huber threshold times HUBER_DRAWS[d] / HUBER_DRAWS[0], in its own folder. The row is
     draw 0's with every draw's ATE and the mean of those that scored, which the seed means use."""
-    from mbavo_jax import bench_mono as bm
+    from mbavo_jax.bench import mono as bm
     from mbavo_jax.config import HUBER_DRAWS
 
     calls = []
@@ -305,7 +305,7 @@ def test_the_bench_means_over_seeds_compare_only_sequences_both_methods_scored()
     """``bench mono --seeds``: the presets' sequences at each seed (the base seed keeps the plain
     name), and per method the mean ATE over the seeds it scored, its ratio to mono_n1 over the
     sequences both scored, and each seed's ratio; a run without a score counts as run, not scored."""
-    from mbavo_jax.bench_mono import format_seed_table, seed_groups, seed_means
+    from mbavo_jax.bench.mono import format_seed_table, seed_groups, seed_means
 
     cfg = BenchConfig(presets="none,strong", seed=3, seeds="1,3, 2")
     assert seed_groups(cfg) == {"none": {"none": 3, "none_s1": 1, "none_s2": 2}, "strong": {"strong": 3, "strong_s1": 1, "strong_s2": 2}}

@@ -1,7 +1,7 @@
 """The blur-aware tracker: Jacobian paths, accuracy vs the blur-unaware tracker, status, shapes.
 
 Runs at 160x120 so the suite stays fast on 2 cores; the 640x480 accuracy and speed numbers come
-from ``scripts/bench_tracking.py`` (docs/benchmarks.md). Tests that generate a sequence or track a
+from ``mbavo bench tracking`` (docs/benchmarks.md). Tests that generate a sequence or track a
 frame are marked slow (``pytest -m "not slow"`` leaves them out)."""
 
 from __future__ import annotations

@@ -271,12 +271,15 @@ class OdometryConfig(Settings):
                                     "with a velocity to predict its blur, is tracked with adaptive n (tracker.n_mode)", FRACTION)
     sharp_blur_px: float = setting(0.5, "a frame tracked with adaptive n whose predicted blur is below this (full-resolution px) is "
                                    "tracked as sharp: one pose, start = end (global shutter, linear path; 0 = never)", NONNEG)
+    adaptive_below_px: float = setting(6.0, "a frame whose predicted blur (constant-velocity guess, full-resolution px) is below this "
+                                       "is tracked with adaptive n (tracker.n_mode: few virtual frames for a little blur; global "
+                                       "shutter, linear path; 0 = never)", NONNEG)
     exposure_settled: float = setting(0.05, "estimated exposure: settled when it moved by at most this fraction of the frame interval "
                                       "over its last 6 samples; then only every exposure_thin-th tracked frame is paired", FRACTION)
     exposure_thin: int = setting(8, "see exposure_settled (1: every frame is paired)", AT_LEAST_1)
-    exposure_probe: int = setting(12, "estimated exposure: the first frames run once before the run (nothing written; tracked "
-                                  "blind to blur, no keyframe deblurred); the run starts from their exposure samples, not the guess, and does not "
-                                  "pair them again (0 = off)", NONNEG)
+    exposure_probe: int = setting(60, "estimated exposure: at most this many first frames run once before the run (nothing written; "
+                                  "tracked blind to blur, no keyframe deblurred), stopping once the estimate has settled (exposure_settled); "
+                                  "the run starts from their exposure samples, not the guess, and does not pair them again (0 = off)", NONNEG)
     reject_rms_ratio: float = setting(2.5, "a tracked frame whose residual RMS exceeds this multiple of the largest of the recent "
                                       "frames' is dropped as implausible (0 = off)", NONNEG)
     reject_jump_ratio: float = setting(4.0, "... or whose pose lies further from the constant-velocity prediction than this multiple "

@@ -149,12 +149,12 @@ def test_the_exposure_probe_starts_a_monocular_run_from_an_estimate_not_the_gues
     test_exposure.py; here it is met with a wide margin (three samples within 0.3 of the frame interval
     where they spread by under 0.1), so the stop does not hang on a sample's last digits. Off with
     ``mono.exposure_probe=0`` and for a loop blind to blur."""
-    import mbavo_jax.odometry.mono as odo_mono
+    import mbavo_jax.odometry.rgbd as odo_rgbd
 
     seq = open_sequence(seq_dir)
     settings = ["odometry.mode=mono", "odometry.exposure_pair_ratio=1.2",  # this short path changes speed by less than 1.3x in 6 frames
                 "odometry.exposure_settled=0.3"]
-    monkeypatch.setattr(odo_mono, "SETTLED_SAMPLES", 3)
+    monkeypatch.setattr(odo_rgbd, "SETTLED_SAMPLES", 3)  # the probe's rule (RGBDPipeline.probe_done) reads it
     monkeypatch.setattr(MonoPipeline, "deblurred", lambda *a, **k: (_ for _ in ()).throw(AssertionError("the probe deblurred")))
     asked = []  # (samples so far, the rule's answer) each time the loop asks
     rule = MonoPipeline.probe_done

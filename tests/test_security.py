@@ -123,6 +123,22 @@ def test_config_files_never_expand_interpolation(tmp_path, secret_home):
     assert SECRET not in str(err.value) and str(err.value).startswith(f"{path}: runtime.cache_dir: ")
 
 
+def test_a_second_sweep_into_a_busy_folder_is_refused(tmp_path, mbavo):
+    """Two sweeps into one ``--out``: the second would rewrite the first's result.json files while
+    its runs go on; it is one line naming the folder and the holder's pid, and writes nothing."""
+    from mbavo_jax.odometry.lock import RunLock
+
+    out = tmp_path / "out"
+    out.mkdir()
+    sweep = write_sweep(tmp_path / "sweep.yaml", {"sequences": [{"preset": "strong", "frames": 2, "width": 64, "height": 48}],
+                                                  "configurations": {"ours": {}}})
+    with RunLock(out) as held:
+        held.sign()
+        r = mbavo("sweep", sweep, "--out", out, "-q")
+    one_line_error(r, f"pid {os.getpid()}")
+    assert sorted(p.name for p in out.iterdir()) == []
+
+
 def test_a_file_cannot_choose_where_compiled_programs_are_loaded_from(tmp_path, mbavo):
     """``runtime.cache_dir`` names the folder whose compiled programs a run loads and runs: a
     ``--config`` file or a sweep file from someone else may not set it (one line); ``--set`` may."""

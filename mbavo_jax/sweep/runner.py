@@ -105,16 +105,20 @@ def run_sweep(spec: SweepSpec, out, settings: SweepConfig = SweepConfig(), progr
     """Run ``spec`` into ``out``: ``data/`` (generated sequences), ``runs/<sequence>/<method>/``
     (each run's outputs and result.json), results.csv, results.md, ate.png. Runs an earlier call
     finished with the same task are kept unless ``settings.rerun``; failures are rows. Names that
-    are not safe folder names, or an engine that cannot start, are refused before ``out`` is made."""
+    are not safe folder names, or an engine that cannot start, are refused before ``out`` is made;
+    a second sweep into the same ``out`` while this one runs is refused (the folder's lock)."""
     from ..io import prepare_out_dir
+    from ..odometry.lock import RunLock
 
     check_names("sweep", spec)
     check_engine(settings)
     out = prepare_out_dir(out)
-    failed = _prepare(spec, out, settings, progress)
-    tasks = tasks_of(spec, out)
-    rows, executed = _execute(tasks, settings, failed, progress)
-    files = write_tables(rows, out)
+    with RunLock(out) as lock:  # one sweep per folder: a second one would rewrite the runs' result.json
+        lock.sign()
+        failed = _prepare(spec, out, settings, progress)
+        tasks = tasks_of(spec, out)
+        rows, executed = _execute(tasks, settings, failed, progress)
+        files = write_tables(rows, out)
     return SweepResult(rows, executed, len(tasks) - executed - sum(t.sequence in failed for t in tasks), files)
 
 

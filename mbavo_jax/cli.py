@@ -20,6 +20,8 @@ from .methods import ODOMETRY_METHODS
 __all__ = ["main", "build_parser"]
 
 KINDS = ["auto", "tum", "kitti", "euroc", "dso", "folder"]
+JAX_HERE = {"jacobians", "synth", "eval", "track", "deblur", "demo", "view", "info"}  # commands that run JAX in this process
+JAX_IN_WORKERS = {"bench", "sweep"}  # commands whose runs may use JAX in worker processes
 PRESET_BLUR_PX = {"none": 0.0, "mild": 5.0, "strong": 20.0, "extreme": 40.0}  # synth --from: mean blur per preset
 
 
@@ -184,6 +186,7 @@ def _cmd_info(args) -> int:
         "frames": len(seq),
         "duration_s": float(seq.timestamps[-1] - seq.timestamps[0]) if len(seq) > 1 else 0.0,
         "camera": cam.as_dict(),
+        "camera_model": seq.camera_model,
         "depth": seq.has_depth,
         "exposure_times": seq.exposures is not None,
         "readout_ms": 1000 * seq.readout_s,
@@ -216,7 +219,7 @@ def _viewer(args, seq, config):
     that records nothing when neither is given."""
     import contextlib
 
-    if not (args.viewer or args.rrd):
+    if not (args.viewer or args.rrd is not None):
         return contextlib.nullcontext(None)
     from .viewer import RunViewer
 
@@ -224,14 +227,16 @@ def _viewer(args, seq, config):
 
 
 def _check_viewer(args) -> None:
-    """With ``--viewer`` or ``--rrd``: rerun-sdk must be installed, and a window needs a display
-    (one-line errors before anything runs)."""
-    if args.viewer or args.rrd:
-        from .viewer import check_display, require_rerun
+    """With ``--viewer`` or ``--rrd``: rerun-sdk must be installed, a window needs a display and the
+    recording file a place it can be written to (one-line errors before anything runs)."""
+    if args.viewer or args.rrd is not None:
+        from .viewer import check_display, check_rrd, require_rerun
 
         require_rerun()
         if args.viewer:
             check_display()
+        if args.rrd is not None:
+            check_rrd(args.rrd)
 
 
 def _cmd_track(args) -> int:
@@ -251,7 +256,8 @@ def _cmd_track(args) -> int:
     with _viewer(args, seq, config) as viewer:
         summary = run_odometry(seq, out, config, resume=args.resume or args.resume_anyway, max_frames=args.max_frames,
                                progress=not args.quiet, resume_anyway=args.resume_anyway, observer=viewer)
-    summary.update(evaluate_run(out, seq.groundtruth, seq.timestamps, config.evaluation, plots=True))
+    _check_posed(out, summary, len(seq), args.max_frames)
+    summary.update(evaluate_run(out, seq.groundtruth, seq.timestamps, config.evaluation, plots=True, monocular=summary.get("mode") == "mono"))
     summary["out"] = str(out)
     if args.format == "json":
         print(json.dumps(summary, indent=2))
@@ -259,6 +265,26 @@ def _cmd_track(args) -> int:
         for k, v in summary.items():
             print(f"{k:>16}: {v:.4f}" if isinstance(v, float) else f"{k:>16}: {v}")
     return 0
+
+
+def _check_posed(out, summary: dict, frames: int, max_frames: int | None) -> None:
+    """A monocular run that went to the sequence's end without posing a frame is an error: one line
+    with the initialiser's last note (frames.csv); the run folder keeps its files. A run stopped
+    earlier by --max-frames is not (--resume continues it)."""
+    import pathlib
+
+    if summary.get("mode") != "mono" or (max_frames is not None and max_frames < frames):
+        return
+    trajectory = pathlib.Path(out) / "trajectory.txt"
+    lines = trajectory.read_text(errors="replace").splitlines() if trajectory.is_file() else []
+    if any(line.strip() and not line.startswith("#") for line in lines):
+        return
+    from .odometry.folder import committed_rows
+
+    noted = [r for r in committed_rows(pathlib.Path(out)) if r.get("note")]
+    last = f" (last note, frame {noted[-1]['index']}: {' '.join(noted[-1]['note'].split())})" if noted else ""
+    raise UserError(f"{out}: no frame posed: the monocular system did not initialise in the sequence's {frames} frames{last}; "
+                    "the run's files are kept")
 
 
 def _cmd_deblur(args) -> int:
@@ -341,18 +367,21 @@ def _cmd_demo(args) -> int:
     print(f"tracking with n={config.tracker.n} virtual frames -> {run}", flush=True)
     with _viewer(args, seq, config) as viewer:
         summary = run_odometry(seq, run, config, progress=not args.quiet, observer=viewer)
-    summary.update(evaluate_run(run, seq.groundtruth, seq.timestamps, config.evaluation, plots=True))
+    summary.update(evaluate_run(run, seq.groundtruth, seq.timestamps, config.evaluation, plots=True, monocular=summary.get("mode") == "mono"))
     print(
         f"tracked {summary['tracked']}/{summary['frames']} frames, {summary['keyframes']} keyframes, "
-        f"ATE rmse {summary.get('ate_rmse_m', float('nan')):.4f} m; plots: {run / 'trajectory.png'}, {run / 'ape_over_time.png'}"
+        f"ATE rmse {summary.get('ate_rmse_m', float('nan')):.4f} m ({summary.get('ate_alignment', config.evaluation.align)}); "
+        f"plots: {run / 'trajectory.png'}, {run / 'ape_over_time.png'}"
     )
     return 0
 
 
 def _cmd_view(args) -> int:
-    from .viewer import require_rerun
+    from .viewer import check_rrd, require_rerun
 
     require_rerun()
+    if args.rrd is not None:
+        check_rrd(args.rrd)
     from .viewer import view_run
 
     res = view_run(args.run, rrd=args.rrd, sequence=args.sequence, progress=not args.quiet)
@@ -365,7 +394,7 @@ def _cmd_bench(args) -> int:
     from .methods import parse_methods
 
     if args.what == "rolling-shutter":
-        from .bench_rolling import ROLLING_DEFAULTS, main_rolling
+        from .bench.rolling import ROLLING_DEFAULTS, main_rolling
 
         return main_rolling(from_arguments(BenchConfig, args, ROLLING_DEFAULTS), args.format, args.quiet)
     cfg = from_arguments(BenchConfig, args)
@@ -377,11 +406,11 @@ def _cmd_bench(args) -> int:
     if args.what == "tracking":
         return bench.main_tracking(cfg, args.data, args.format, args.quiet)
     if args.what == "mono":
-        from .bench_mono import main_mono
+        from .bench.mono import main_mono
 
         return main_mono(cfg, args.format, args.quiet)
     if args.what == "speed":
-        from .bench_speed import main_speed
+        from .bench.speed import main_speed
 
         return main_speed(cfg, args.format, args.quiet)
     return bench.main_odometry(cfg, args.format, args.quiet, settings)
@@ -596,20 +625,39 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _check_jax_environment(command: str) -> None:
+    """JAX_PLATFORMS and XLA_FLAGS checked before a command that uses JAX starts its backend (one
+    line naming the variable; ``jaxenv``)."""
+    if command in JAX_HERE or command in JAX_IN_WORKERS:
+        from .jaxenv import check_jax_environment
+
+        check_jax_environment(in_process=command in JAX_HERE)
+
+
 def _interrupt(signum, frame):
     raise KeyboardInterrupt
+
+
+def _interrupted_line(args) -> str:
+    """What an interrupted command says: a sweep names its file (its workers are ended, its finished
+    runs kept); a run keeps every finished frame."""
+    if args.command == "sweep":
+        return (f"mbavo: interrupted: sweep {args.spec} stopped and its workers ended (finished runs in {args.out} are kept; "
+                "the same command continues)")
+    return "mbavo: interrupted (every finished frame is kept; 'mbavo track ... --resume' continues)"
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)  # argument errors: one line, exit 1
     previous = signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM stops like Ctrl-C: finished frames are kept
     try:
+        _check_jax_environment(args.command)
         return int(args.func(args) or 0)
     except UserError as exc:
         print(f"mbavo: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print("mbavo: interrupted (every finished frame is kept; 'mbavo track ... --resume' continues)", file=sys.stderr)
+        print(_interrupted_line(args), file=sys.stderr)
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)

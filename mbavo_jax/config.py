@@ -5,8 +5,8 @@ is what it is lives in docs/settings.md.
 
 This module imports neither JAX nor NumPy, so the command line can parse and reject arguments fast.
 Loading goes through OmegaConf structured configs (typed merge of defaults, YAML and dot-list
-overrides, unknown keys rejected); ranges are checked by the dataclasses themselves, so a config
-built in Python is checked the same way.
+overrides, unknown keys rejected; a ``${...}`` is refused, never resolved); ranges are checked by
+the dataclasses themselves, so a config built in Python is checked the same way.
 """
 
 from __future__ import annotations
@@ -271,12 +271,15 @@ class OdometryConfig(Settings):
                                     "with a velocity to predict its blur, is tracked with adaptive n (tracker.n_mode)", FRACTION)
     sharp_blur_px: float = setting(0.5, "a frame tracked with adaptive n whose predicted blur is below this (full-resolution px) is "
                                    "tracked as sharp: one pose, start = end (global shutter, linear path; 0 = never)", NONNEG)
+    adaptive_below_px: float = setting(6.0, "a frame whose predicted blur (constant-velocity guess, full-resolution px) is below this "
+                                       "is tracked with adaptive n (tracker.n_mode: few virtual frames for a little blur; global "
+                                       "shutter, linear path; 0 = never)", NONNEG)
     exposure_settled: float = setting(0.05, "estimated exposure: settled when it moved by at most this fraction of the frame interval "
                                       "over its last 6 samples; then only every exposure_thin-th tracked frame is paired", FRACTION)
     exposure_thin: int = setting(8, "see exposure_settled (1: every frame is paired)", AT_LEAST_1)
-    exposure_probe: int = setting(12, "estimated exposure: the first frames run once before the run (nothing written; tracked "
-                                  "blind to blur, no keyframe deblurred); the run starts from their exposure samples, not the guess, and does not "
-                                  "pair them again (0 = off)", NONNEG)
+    exposure_probe: int = setting(60, "estimated exposure: at most this many first frames run once before the run (nothing written; "
+                                  "tracked blind to blur, no keyframe deblurred), stopping once the estimate has settled (exposure_settled); "
+                                  "the run starts from their exposure samples, not the guess, and does not pair them again (0 = off)", NONNEG)
     reject_rms_ratio: float = setting(2.5, "a tracked frame whose residual RMS exceeds this multiple of the largest of the recent "
                                       "frames' is dropped as implausible (0 = off)", NONNEG)
     reject_jump_ratio: float = setting(4.0, "... or whose pose lies further from the constant-velocity prediction than this multiple "
@@ -318,7 +321,8 @@ class EvalConfig(Settings):
     section: typing.ClassVar[str] = "evaluation"
 
     t_max_diff: float = setting(0.02, "largest timestamp difference (s) when matching estimated and true poses", POSITIVE)
-    align: str = setting("se3", "Umeyama alignment before the ATE", choices=("none", "se3", "sim3"))
+    align: str = setting("se3", "Umeyama alignment before the ATE of RGB-D runs (monocular runs are always scored after sim3: "
+                         "their scale is free)", choices=("none", "se3", "sim3"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -378,7 +382,7 @@ class RuntimeConfig(Settings):
     release_programs_at: float = setting(0.5, "a run first releases the compiled programs this process holds (they come back from the "
                                          "compilation cache) when their memory maps pass this fraction of the system's limit "
                                          "(vm.max_map_count): past it XLA cannot load another program and the process dies", FRACTION)
-    checkpoint_every: int = setting(1, "monocular runs: write the --resume checkpoint (checkpoint.pkl) after every k-th frame; a resume "
+    checkpoint_every: int = setting(1, "monocular runs: write the --resume checkpoint (checkpoint.npz) after every k-th frame; a resume "
                                     "goes on from the last one, the frames after it tracked again (0: none, no --resume)", NONNEG)
     trim_memory: bool = setting(True, "after each frame, hand the memory that was freed back to the system (glibc's malloc_trim; "
                                 "nothing elsewhere), so that a long run's resident memory stays flat: else a new program's work "
@@ -440,11 +444,14 @@ class SynthConfig(Settings):
     shake_hz: float = setting(12.0, "handheld shake: its frequency (Hz)", POSITIVE)
 
     def relations(self) -> list[str]:
-        frame_ms = 1000.0 / self.fps
+        frame_ms, problems = 1000.0 / self.fps, []
         if self.readout_ms > frame_ms:
-            return [f"readout_ms ({self.readout_ms:g}) must not exceed the frame interval 1000/fps ({frame_ms:.3g} ms): "
-                    "the sensor reads one frame at a time"]
-        return []
+            problems.append(f"readout_ms ({self.readout_ms:g}) must not exceed the frame interval 1000/fps ({frame_ms:.3g} ms): "
+                            "the sensor reads one frame at a time")
+        if self.exposure_ms > frame_ms:
+            problems.append(f"exposure_ms ({self.exposure_ms:g}) must not exceed the frame interval 1000/fps ({frame_ms:.3g} ms): "
+                            "a frame's exposure ends before the next one starts")
+        return problems
 
 
 # Mean blur length at 640x480 (``mbavo synth`` reports it): none 0 px, mild ~5, strong ~20, extreme ~40.
@@ -540,7 +547,8 @@ def as_dict(obj) -> dict:
 def load_config(path=None, overrides: list[str] | None = None, calibration: dict | None = None) -> RunConfig:
     """Defaults, then the YAML file at ``path``, then ``calibration`` (the tracker values a
     sequence's camera.yaml records: response_gamma, depth_sigma), then ``section.key=value``
-    overrides. An unknown section or key, a wrong type or a value out of range raises ConfigError."""
+    overrides. An unknown section or key, a wrong type or a value out of range raises ConfigError;
+    so does a ``${...}`` anywhere (values are taken as written: no interpolation, no resolvers)."""
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
@@ -553,6 +561,7 @@ def load_config(path=None, overrides: list[str] | None = None, calibration: dict
         key = item.split("=", 1)[0]
         if "=" not in item or "." not in key:
             raise ConfigError(f"override '{item}' must look like section.key=value (e.g. tracker.n=32)")
+        _no_interpolation(f"--set {item}", item, key)
         layers.append((f"--set {item}", OmegaConf.from_dotlist([item])))
     merged = OmegaConf.structured(RunConfig)
     for where, layer in layers:
@@ -596,6 +605,37 @@ def _strict_bools(layer, prefix: str = "") -> None:
                 raise ConfigError(f"{section}.{k}: expected true or false, got {v!r}")
 
 
+def _no_interpolation(where: str, value, key: str = "") -> None:
+    """Refuse (one line) a ``${...}`` in a user's key or value: OmegaConf would resolve it (e.g.
+    ``${oc.env:HOME}``: an environment variable copied into the run's config.yaml)."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _no_interpolation(where, k, key)
+            _no_interpolation(where, v, f"{key}.{k}" if key else str(k))
+    elif isinstance(value, (list, tuple)):
+        for v in value:
+            _no_interpolation(where, v, key)
+    elif isinstance(value, str) and "${" in value:
+        raise ConfigError(f"{where}: {key or 'a key'}: '${{' is not allowed: settings are taken as written (no interpolation)")
+
+
+def refuse_command_line_only(where: str, value) -> None:
+    """Refuse (one line) a ``runtime.cache_dir`` other than the default ('') in a file (a ``--config``
+    YAML, a sweep file): the compilation cache holds compiled programs that run when loaded, so only
+    the user's own ``--set`` (or the default folder) may say where they come from."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if (str(k) == "cache_dir" or str(k).endswith(".cache_dir")) and v not in ("", None):
+                raise ConfigError(f"{where}: runtime.cache_dir cannot be set in a file (compiled programs run when loaded): "
+                                  "use --set runtime.cache_dir=... on the command line")
+            refuse_command_line_only(where, v)
+    elif isinstance(value, (list, tuple)):
+        for v in value:
+            if isinstance(v, str) and "cache_dir=" in v:
+                refuse_command_line_only(where, dict([v.split("=", 1)]))
+            refuse_command_line_only(where, v)
+
+
 def _read_yaml(p: pathlib.Path) -> dict:
     import yaml
 
@@ -609,6 +649,8 @@ def _read_yaml(p: pathlib.Path) -> dict:
         raise ConfigError(f"{p}: not valid YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(data, dict) or not all(isinstance(v, (dict, type(None))) for v in data.values()):
         raise ConfigError(f"{p}: expected sections {', '.join(f'{s}:' for s in SECTIONS)} holding key: value lines")
+    _no_interpolation(str(p), data)
+    refuse_command_line_only(str(p), data)
     return {k: v or {} for k, v in data.items()}
 
 

@@ -33,6 +33,10 @@ __all__ = [
     "read_camera_yaml",
     "read_camera",
     "checked_camera",
+    "yaml_number",
+    "exposure_problem",
+    "frame_interval_ms",
+    "check_exposures",
     "write_camera_yaml",
     "read_image_gray",
     "read_depth_png",
@@ -45,7 +49,6 @@ __all__ = [
     "format_stamp",
     "check_size",
     "prepare_out_dir",
-    "principal_point_problem",
 ]
 
 
@@ -338,26 +341,62 @@ def write_exposure_rows(path, rows: ExposureRows) -> None:
 
 CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 CAMERA_RULES = {"fx": "> 0", "fy": "> 0", "width": "> 0", "height": "> 0", "cx": "", "cy": "",
-                "depth_scale": "> 0", "fps": "> 0", "response_gamma": "> 0", "exposure_ms": ">= 0",
-                "readout_ms": ">= 0"}  # numeric keys
+                "depth_scale": "> 0", "fps": "> 0", "response_gamma": "> 0", "exposure_ms": "",
+                "readout_ms": ">= 0"}  # numeric keys (exposure_ms: checked by exposure_problem)
 
 
-def principal_point_problem(cx: float, cy: float, width: int, height: int) -> str:
-    """What is wrong with a principal point outside the image (pixel centres 0 .. size-1), or ''."""
-    for key, c, size, name in (("cx", cx, width, "width"), ("cy", cy, height, "height")):
-        if not 0 <= c <= size - 1:
-            return f"principal point {key} = {c:g} is outside the image (0 <= {key} <= {size - 1} for {name} {size})"
+def yaml_number(where, what: str, value, line: int | None = None) -> float:
+    """A number read from YAML (or text holding one, as YAML reads ``1e3``) as a finite float; a
+    DataError naming ``where`` and ``what`` for a boolean (``true`` is not 1), nothing, other text or
+    a non-finite value."""
+    try:
+        if isinstance(value, bool) or value is None:
+            raise TypeError
+        v = float(value)
+    except (TypeError, ValueError):
+        raise DataError(where, f"{what} is not a number: {value!r}", line) from None
+    if not np.isfinite(v):
+        raise DataError(where, f"{what} is not finite: {v}", line)
+    return v
+
+
+EXPOSURE_SLACK = (0.01, 0.1)  # exposure_problem's tolerance: 1 % of the frame interval plus 0.1 ms
+
+
+def exposure_problem(exposure_ms: float, interval_ms: float | None) -> str:
+    """What is wrong with an exposure time (ms), or '': the one rule for every exposure read,
+    0 <= exposure <= the frame interval (``interval_ms``, when known; ``EXPOSURE_SLACK`` of slack).
+    0 is an instantaneous exposure (a sharp image, as ``mbavo synth --preset none`` writes)."""
+    if not np.isfinite(exposure_ms):
+        return f"is not finite: {exposure_ms}"
+    if exposure_ms < 0:
+        return f"must be >= 0 ms, got {exposure_ms:g}"
+    if interval_ms is not None and exposure_ms > interval_ms * (1 + EXPOSURE_SLACK[0]) + EXPOSURE_SLACK[1]:
+        return f"must be at most the frame interval {interval_ms:.4g} ms (the time between frames), got {exposure_ms:g} ms"
     return ""
+
+
+def frame_interval_ms(stamps) -> float | None:
+    """The frame interval (ms) of timestamps (s): the median time between frames; None for one frame."""
+    stamps = np.asarray(stamps, np.float64)
+    return float(np.median(np.diff(stamps))) * 1000.0 if len(stamps) > 1 else None
+
+
+def check_exposures(path, exposures_ms, stamps, lines=None, what: str = "exposure") -> np.ndarray:
+    """``exposures_ms`` if each obeys :func:`exposure_problem` at the frame interval of ``stamps`` (s);
+    else a DataError naming ``path`` and the line (``lines[i]`` is the line of ``exposures_ms[i]``)."""
+    exposures_ms = np.asarray(exposures_ms, np.float64)
+    interval = frame_interval_ms(stamps)
+    for i, e in enumerate(exposures_ms):
+        problem = exposure_problem(float(e), interval)
+        if problem:
+            raise DataError(path, f"{what} {problem}", None if lines is None else lines[i])
+    return exposures_ms
 
 
 def _camera_number(path, key: str, value, rule: str) -> float:
     """camera.yaml's ``key`` as a finite float obeying ``rule`` ('> 0', '>= 0' or ''), else a DataError naming the key."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise DataError(path, f"camera key '{key}' is not a number: {value!r}") from None
-    if not np.isfinite(v):
-        raise DataError(path, f"camera key '{key}' is not finite: {v}")
+    v = yaml_number(path, f"camera key '{key}'", value)
     if (rule == "> 0" and v <= 0) or (rule == ">= 0" and v < 0):
         raise DataError(path, f"camera key '{key}' must be {rule}, got {v:g}")
     if key in ("width", "height") and v != int(v):
@@ -368,7 +407,8 @@ def _camera_number(path, key: str, value, rule: str) -> float:
 def _depth_sigma(path, ds) -> list[float]:
     """camera.yaml's ``depth_sigma`` [a > 0, b >= 0] as floats, else a DataError."""
     try:
-        ok = len(ds) == 2 and float(ds[0]) > 0 and float(ds[1]) >= 0 and all(np.isfinite([float(x) for x in ds]))
+        ok = len(ds) == 2 and not any(isinstance(x, bool) for x in ds)  # true is not 1
+        ok = ok and float(ds[0]) > 0 and float(ds[1]) >= 0 and all(np.isfinite([float(x) for x in ds]))
     except (TypeError, ValueError):
         ok = False
     if not ok:
@@ -379,7 +419,7 @@ def _depth_sigma(path, ds) -> list[float]:
 def checked_camera(where, fx, fy, cx, cy, width, height, line: int | None = None):
     """``PinholeCamera.create``, its complaint about the values a DataError naming ``where`` (the file
     they come from) and ``line``."""
-    from .geometry.camera import PinholeCamera  # geometry.camera imports this module
+    from .geometry.camera import PinholeCamera  # here, not at the top: it imports JAX
 
     try:
         return PinholeCamera.create(fx, fy, cx, cy, width, height)
@@ -407,6 +447,10 @@ def read_camera(path):
     for k, rule in CAMERA_RULES.items():
         if k in data:
             data[k] = _camera_number(path, k, data[k], rule)
+    if "exposure_ms" in data:
+        problem = exposure_problem(data["exposure_ms"], 1000.0 / data["fps"] if "fps" in data else None)
+        if problem:
+            raise DataError(path, f"camera key 'exposure_ms' {problem}")
     camera = checked_camera(path, *(data[k] for k in CAMERA_KEYS))
     if "depth_sigma" in data:
         data["depth_sigma"] = _depth_sigma(path, data["depth_sigma"])

@@ -34,7 +34,7 @@ from .io import read_exposure_file, read_ply, read_tum_trajectory
 from .tracking import Status
 from .tracking.points import downsample_depth
 
-__all__ = ["INSTALL_HINT", "require_rerun", "check_display", "ViewKeyframe", "ViewFrame", "RunViewer", "live_frame", "folder_frames",
+__all__ = ["INSTALL_HINT", "require_rerun", "check_display", "check_rrd", "ViewKeyframe", "ViewFrame", "RunViewer", "live_frame", "folder_frames",
            "view_run", "view_level"]
 
 INSTALL_HINT = 'the viewer needs rerun-sdk: pip install -e ".[viewer]"'
@@ -62,6 +62,31 @@ def check_display() -> None:
     if sys.platform.startswith("linux") and not any(os.environ.get(v) for v in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET")):
         raise MbavoError("the rerun viewer needs a display (DISPLAY and WAYLAND_DISPLAY are not set): write the recording "
                          "with --rrd FILE and open it where there is one (rerun FILE)")
+
+
+def check_rrd(path) -> pathlib.Path:
+    """The recording file ``path`` (``--rrd``), checked before a run by ``--out``'s rules
+    (``io.prepare_out_dir``): its folder is made when missing; a one-line MbavoError when ``path``
+    is a folder, a parent is not a folder, or the file cannot be written there. A file that is
+    already there is kept until the recording replaces it; a probe file made here is removed."""
+    if not str(path).strip():
+        raise MbavoError("--rrd is empty: give a file name (e.g. run.rrd)")
+    path = pathlib.Path(path)
+    if path.is_dir():
+        raise MbavoError(f"{path}: --rrd is a folder; give a file name (e.g. {path / 'run.rrd'})")
+    existing = next((p for p in path.parents if p.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise MbavoError(f"{path}: --rrd cannot be created: {existing} is not a folder (choose another --rrd)")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        made = not path.exists()
+        with open(path, "ab"):
+            pass
+        if made:
+            path.unlink()
+    except OSError as exc:
+        raise MbavoError(f"{path}: --rrd cannot be written: {exc.strerror or exc} (choose another --rrd)") from None
+    return path
 
 
 @dataclasses.dataclass(frozen=True)
@@ -197,8 +222,12 @@ class RunViewer:
             check_display()
             self.rec.spawn(connect=False)
         if rrd is not None:
-            pathlib.Path(rrd).parent.mkdir(parents=True, exist_ok=True)
-        self.rec.set_sinks(*([rr.GrpcSink()] if spawn else []), *([rr.FileSink(str(rrd))] if rrd is not None else []))
+            check_rrd(rrd)
+        try:
+            self.rec.set_sinks(*([rr.GrpcSink()] if spawn else []), *([rr.FileSink(str(rrd))] if rrd is not None else []))
+        except RuntimeError as exc:  # the file's folder changed since the check, or no viewer to stream to
+            where = f"{rrd}: --rrd cannot be written" if rrd is not None else "the rerun viewer cannot be reached"
+            raise MbavoError(f"{where} ({exc})") from None
         self.mids: list[np.ndarray] = []
         self.keyframe_ids: dict[str, int] = {}
         self.drops = 0

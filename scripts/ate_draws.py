@@ -17,7 +17,7 @@ import pathlib
 
 import numpy as np
 
-from mbavo_jax.bench import _ate
+from mbavo_jax.methods import ate_rmse
 from mbavo_jax.config import HUBER_DRAWS, calibration_of, load_config
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.odometry import run_odometry
@@ -40,7 +40,7 @@ def main() -> None:
             config = load_config(None, [*filter(None, sets.split(";")), f"tracker.huber={h!r}"], calibration_of(seq.meta))
             run = pathlib.Path(args.out) / name / f"huber{h:.7f}"
             run_odometry(seq, run, config, max_frames=args.frames, progress=False)
-            ates.append(1000 * _ate(seq, run, config.evaluation))
+            ates.append(1000 * ate_rmse(seq, run, config.evaluation))
             print(f"{name} huber {h:.7f}: ATE {ates[-1]:.2f} mm", flush=True)
         print(f"{name}: mean {np.mean(ates):.2f} mm, {min(ates):.2f}-{max(ates):.2f} over {len(ates)} draws", flush=True)
 

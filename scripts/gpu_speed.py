@@ -61,7 +61,7 @@ def _tracking_calls(seq, base, frames: int) -> dict:
     import jax
     import numpy as np
 
-    from mbavo_jax.bench import tracking_pairs
+    from mbavo_jax.bench.sequences import tracking_pairs
     from mbavo_jax.tracking import Keyframe, track
 
     row = {}
@@ -92,7 +92,7 @@ def measure(data: pathlib.Path, out: pathlib.Path, frames: int, loops: str, call
     """Tracking calls, start-up and whole-loop seconds per frame for n = 1 and n = 64 on the default device."""
     import jax
 
-    from mbavo_jax.bench_mono import trajectory_scores
+    from mbavo_jax.bench.mono import trajectory_scores
     from mbavo_jax.config import EvalConfig, RunConfig, TrackerConfig, calibration_of
     from mbavo_jax.datasets import open_sequence
     from mbavo_jax.odometry import run_odometry

@@ -16,7 +16,7 @@ ratio to mono_n1's. Example (sequences made by ``mbavo synth ... --no-exposure-i
 import argparse
 import pathlib
 
-from mbavo_jax.bench_mono import MONO_METHODS, format_mono_table, format_seed_table, run_mono_benchmark
+from mbavo_jax.bench.mono import MONO_METHODS, format_mono_table, format_seed_table, run_mono_benchmark
 from mbavo_jax.config import HUBER_DRAWS
 
 

@@ -5,7 +5,7 @@ import csv
 
 import pytest
 
-from mbavo_jax.bench_speed import PROFILE_PARTS, format_speed_table, memory_growth, profile_run, timed_runs, variant_scores
+from mbavo_jax.bench.speed import PROFILE_PARTS, format_speed_table, memory_growth, profile_run, timed_runs, variant_scores
 from mbavo_jax.config import RunConfig, TrackerConfig
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.odometry.outputs import CSV_COLUMNS

@@ -5,6 +5,7 @@ outputs (points.ply among them), initialisation notes, a textureless start and a
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import pathlib
 import shutil
@@ -15,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mbavo_jax.bench_mono import trajectory_scores
+from mbavo_jax.bench.mono import trajectory_scores
 from mbavo_jax.config import BenchConfig, EvalConfig, RunConfig, load_config
 from mbavo_jax.datasets import open_sequence
 from mbavo_jax.geometry import ExposureTrajectory, PinholeCamera, Pose
@@ -143,17 +144,31 @@ def test_python_api_runs_the_monocular_pipeline(seq_dir, tmp_path):
 def test_the_exposure_probe_starts_a_monocular_run_from_an_estimate_not_the_guess(seq_dir, monkeypatch):
     """Without exposure times the monocular loop first runs blind over the first frames (nothing
     deblurred, nothing written) until its estimate settles: the run starts from those samples (true
-    fraction 0.75, the guess 0.5), not from the guess. Off with ``mono.exposure_probe=0`` and for a
-    loop blind to blur."""
+    fraction 0.75, the guess 0.5), not from the guess, and the probe stops at the first frame whose
+    estimate meets the settling rule. The rule itself is tested on constructed samples in
+    test_exposure.py; here it is met with a wide margin (three samples within 0.3 of the frame interval
+    where they spread by under 0.1), so the stop does not hang on a sample's last digits. Off with
+    ``mono.exposure_probe=0`` and for a loop blind to blur."""
+    import mbavo_jax.odometry.rgbd as odo_rgbd
+
     seq = open_sequence(seq_dir)
-    settings = ["odometry.mode=mono", "odometry.exposure_pair_ratio=1.2"]  # this short path changes speed by less than 1.3x in 6 frames
+    settings = ["odometry.mode=mono", "odometry.exposure_pair_ratio=1.2",  # this short path changes speed by less than 1.3x in 6 frames
+                "odometry.exposure_settled=0.3"]
+    monkeypatch.setattr(odo_rgbd, "SETTLED_SAMPLES", 3)  # the probe's rule (RGBDPipeline.probe_done) reads it
     monkeypatch.setattr(MonoPipeline, "deblurred", lambda *a, **k: (_ for _ in ()).throw(AssertionError("the probe deblurred")))
+    asked = []  # (samples so far, the rule's answer) each time the loop asks
+    rule = MonoPipeline.probe_done
+    monkeypatch.setattr(MonoPipeline, "probe_done", lambda self, state: asked.append((self.estimate(state).count, rule(self, state))) or asked[-1][1])
     pipeline = MonoPipeline(seq.camera, load_config(None, settings))
     start = pipeline.start_state(seq)
     true_fraction = PRESETS["strong"]["exposure_ms"] / 1000 * SynthConfig().fps
     assert start.exposure is not None and start.exposure.count >= 3 and start.tracked == 0 and start.backend is None
     assert abs(start.exposure.fraction() - true_fraction) < abs(pipeline.config.odometry.exposure_guess - true_fraction), start.exposure
-    assert pipeline.probe_done(start) and start.probed_until < seq[FRAMES - 1].timestamp  # settled: it stopped early
+    answers = [done for _, done in asked]
+    assert answers[-1] and not any(answers[:-1]), asked  # it ran until the rule first held, and stopped there
+    assert asked[-1][0] == start.exposure.count == 3 and len(asked) < FRAMES and start.probed_until == seq[len(asked) - 1].timestamp
+    fractions = [dataclasses.replace(start.exposure, samples=start.exposure.samples[:k]).fraction() for k in (1, 2, 3)]
+    assert max(fractions) - min(fractions) < 0.3 / 2, fractions  # the margin the test relies on
     assert MonoPipeline(seq.camera, load_config(None, [*settings, "mono.exposure_probe=0"])).start_state(seq).exposure is None
     assert MonoPipeline(seq.camera, load_config(None, [*settings, "tracker.blur_aware=false"])).start_state(seq).exposure is None
 
@@ -234,7 +249,7 @@ def test_the_bench_defaults_find_the_real_clips_from_any_folder(tmp_path, monkey
     """``--tum`` / ``--kitti`` default to ``../shared/data/...``: from a folder without that path the
     clip is looked up by name in the shared data folder; a path that exists is kept; an unknown one
     comes back unchanged (the loader then says it is missing)."""
-    from mbavo_jax.bench import real_clip
+    from mbavo_jax.bench.sequences import real_clip
 
     from .conftest import shared_dataset
 
@@ -254,7 +269,7 @@ def test_the_bench_draws_run_each_method_at_each_huber_draw_and_the_seed_means_u
     """``bench mono --draws K``: draw 0 is the run as configured, in the method's folder; draw d the
     tracker's Huber threshold times HUBER_DRAWS[d] / HUBER_DRAWS[0], in its own folder. The row is
     draw 0's with every draw's ATE and the mean of those that scored, which the seed means use."""
-    from mbavo_jax import bench_mono as bm
+    from mbavo_jax.bench import mono as bm
     from mbavo_jax.config import HUBER_DRAWS
 
     calls = []
@@ -290,7 +305,7 @@ def test_the_bench_means_over_seeds_compare_only_sequences_both_methods_scored()
     """``bench mono --seeds``: the presets' sequences at each seed (the base seed keeps the plain
     name), and per method the mean ATE over the seeds it scored, its ratio to mono_n1 over the
     sequences both scored, and each seed's ratio; a run without a score counts as run, not scored."""
-    from mbavo_jax.bench_mono import format_seed_table, seed_groups, seed_means
+    from mbavo_jax.bench.mono import format_seed_table, seed_groups, seed_means
 
     cfg = BenchConfig(presets="none,strong", seed=3, seeds="1,3, 2")
     assert seed_groups(cfg) == {"none": {"none": 3, "none_s1": 1, "none_s2": 2}, "strong": {"strong": 3, "strong_s1": 1, "strong_s2": 2}}

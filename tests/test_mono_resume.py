@@ -99,7 +99,7 @@ def test_a_stop_inside_the_exposure_probe_writes_nothing(seq_dir, tmp_path, monk
         arm(m, KillPoint("inside_the_probe", MonoPipeline, "step", 3, after=False))
         with pytest.raises(Killed):
             run_odometry(open_sequence(seq_dir), out, RunConfig().replace(odometry=dict(mode="mono")), progress=False)
-    assert committed_rows(out) == [] and not (out / "trajectory.txt").exists() and not (out / "checkpoint.pkl").exists()
+    assert committed_rows(out) == [] and not (out / "trajectory.txt").exists() and not (out / "checkpoint.npz").exists()
 
 
 def test_resume_without_a_checkpoint_is_one_clear_line(seq_dir, tmp_path, mbavo):
@@ -110,7 +110,7 @@ def test_resume_without_a_checkpoint_is_one_clear_line(seq_dir, tmp_path, mbavo)
     r = mbavo("track", seq_dir, "--out", out, "--mode", "mono", "--max-frames", "3", "-q", *settings)
     assert r.returncode == 0, r.stderr
     r = mbavo("track", seq_dir, "--out", out, "--mode", "mono", "--resume", *settings)
-    assert r.returncode == 1 and "checkpoint.pkl" in r.stderr and "cannot --resume" in r.stderr, r.stderr
+    assert r.returncode == 1 and "checkpoint.npz" in r.stderr and "cannot --resume" in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     assert len(committed_rows(out)) == 3  # the refusal changed nothing
 
@@ -118,6 +118,6 @@ def test_resume_without_a_checkpoint_is_one_clear_line(seq_dir, tmp_path, mbavo)
 def test_checkpoint_of_another_kind_is_refused(seq_dir, tmp_path):
     out = tmp_path / "run"
     run_odometry(open_sequence(seq_dir), out, MONO, progress=False, max_frames=3)
-    (out / "checkpoint.pkl").write_bytes(b"not a pickle")
+    (out / "checkpoint.npz").write_bytes(b"not a pickle")
     with pytest.raises(DataError, match="unreadable"):
         run_odometry(open_sequence(seq_dir), out, MONO, resume=True, progress=False)

@@ -269,13 +269,13 @@ def test_exposure_blur_px_and_deblur_virtual_frames():
 def test_odometry_benchmark_runs_every_method(tmp_path):
     """`mbavo bench odometry`'s engine on a tiny sequence: every method gives a row with real numbers,
     Open3D's included (a test dependency: the 'test' extra installs it)."""
-    from mbavo_jax.bench import import_open3d
+    from mbavo_jax.peers import import_open3d
 
     try:
         import_open3d()
     except (ImportError, OSError) as exc:
         pytest.fail(f"open3d is required for the peer rows (pip install -e '.[test]'): {exc}")
-    from mbavo_jax.bench import format_odometry_table, run_odometry_benchmark
+    from mbavo_jax.bench.odometry import format_odometry_table, run_odometry_benchmark
 
     cfg = SynthConfig(**{**PRESETS["strong"], "frames": 6, "width": 160, "height": 120, "subframes": 16, "seed": 3, "real_textures": False})
     generate_sequence(cfg, tmp_path / "seq", progress=False)

@@ -251,7 +251,7 @@ def test_bench_rejects_unknown_methods_and_presets(mbavo, tmp_path):
 
 
 def test_rolling_sequences_cover_presets_readouts_and_shake():
-    from mbavo_jax.bench_rolling import ROLLING_DEFAULTS, rolling_sequences
+    from mbavo_jax.bench.rolling import ROLLING_DEFAULTS, rolling_sequences
     from mbavo_jax.config import BenchConfig
 
     seqs = rolling_sequences(BenchConfig(**{**ROLLING_DEFAULTS, "readouts": "0,15,30", "shake_deg": 0.5}))
@@ -284,7 +284,7 @@ def test_bench_rolling_shutter_end_to_end(mbavo, tmp_path):
 
 
 def test_row_error_leaves_out_frames_the_tracker_did_not_estimate(tmp_path):
-    from mbavo_jax.bench_rolling import _tracked_only
+    from mbavo_jax.bench.rolling import _tracked_only
 
     (tmp_path / "frames.csv").write_text("index,timestamp,status\n0,1.000000,keyframe\n1,1.033333,converged\n"
                                          "2,1.066667,lost\n3,1.100000,max_steps\n")

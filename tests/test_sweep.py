@@ -93,7 +93,7 @@ def test_a_dying_worker_costs_only_its_own_item():
 
 
 def test_bench_odometry_is_a_sweep_of_its_methods():
-    from mbavo_jax.bench import nested_results, odometry_sweep
+    from mbavo_jax.bench.odometry import nested_results, odometry_sweep
 
     spec = odometry_sweep({"strong": "a/strong", "tum": "b/tum"}, {"levels": 3}, depth_weight=0.01,
                           methods=["ours_n1_depth", "ours_n64", "opencv", "open3d"])
@@ -194,7 +194,7 @@ def test_shipped_sweep_files_parse(name):
 
 def test_odometry_sweep_file_is_the_benchmark():
     """configs/sweeps/odometry.yaml runs what `mbavo bench odometry` runs with its defaults."""
-    from mbavo_jax.bench import odometry_sweep
+    from mbavo_jax.bench.odometry import odometry_sweep
     from mbavo_jax.config import BenchConfig
     from mbavo_jax.sweep import load_sweep
 

@@ -1,7 +1,7 @@
 """The blur-aware tracker: Jacobian paths, accuracy vs the blur-unaware tracker, status, shapes.
 
 Runs at 160x120 so the suite stays fast on 2 cores; the 640x480 accuracy and speed numbers come
-from ``scripts/bench_tracking.py`` (docs/benchmarks.md). Tests that generate a sequence or track a
+from ``mbavo bench tracking`` (docs/benchmarks.md). Tests that generate a sequence or track a
 frame are marked slow (``pytest -m "not slow"`` leaves them out)."""
 
 from __future__ import annotations
@@ -188,6 +188,32 @@ def test_sharp_frames_n64_no_worse_than_n1(sharp_seq):
             assert status.ok
             e[name] = endpoint_error(kf, traj, gt)
         assert e["n64"] <= e["n1"] * 1.2 + 0.05, e
+
+
+def mid_distance_px(kf, a, b) -> float:
+    """Median image distance (px) between the keyframe's points seen from the middles of two exposure paths."""
+    pts, cam = kf.points[0], kf.cameras[0]
+    X = jax.vmap(cam.backproject)(jnp.asarray(pts.pixels[pts.valid]), jnp.asarray(pts.depths[pts.valid]))
+    pa = jax.vmap(lambda p: cam.project(a.middle().inverse().apply(p)))(X)
+    pb = jax.vmap(lambda p: cam.project(b.middle().inverse().apply(p)))(X)
+    return float(np.median(np.linalg.norm(np.asarray(pa - pb), axis=1)))
+
+
+@pytest.mark.slow
+def test_a_mildly_blurred_pair_gives_n64_and_n1_the_same_pose(tmp_path_factory):
+    """Issue 57: on mild blur (the preset's 2-5 px at 320x240) the blur model must cost nothing: n = 64
+    and n = 1 place the frame's middle pose within a pixel of each other and of the truth."""
+    out = tmp_path_factory.mktemp("mild_pair")
+    cfg = SynthConfig(**{**PRESETS["mild"], "frames": 5, "width": 320, "height": 240, "subframes": 32, "seed": 4, "real_textures": False})
+    generate_sequence(cfg, out, progress=False)
+    seq, config = open_sequence(out), TrackerConfig(response_gamma=2.2)
+    for k in (2, 3):
+        kf, frame, init, gt = case(seq, k, config)
+        n64, s64, _ = track(kf, frame, init, config)
+        n1, s1, _ = track(kf, frame, init, dataclasses.replace(config, blur_aware=False))
+        assert s64.ok and s1.ok
+        apart, off64, off1 = mid_distance_px(kf, n64, n1), mid_distance_px(kf, n64, gt), mid_distance_px(kf, n1, gt)
+        assert apart < 1.0 and off64 < 1.0 and off1 < 1.0, (k, apart, off64, off1)
 
 
 @pytest.mark.slow

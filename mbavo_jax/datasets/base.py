@@ -11,6 +11,7 @@ import numpy as np
 from ..errors import FrameIndexError
 from ..geometry.camera import PinholeCamera
 from ..io import ExposureRows, check_size
+from .distortion import CameraModel
 
 __all__ = ["Frame", "Sequence"]
 
@@ -40,6 +41,8 @@ class Sequence:
     ``groundtruth``: (stamps (M,), poses (M, 7) [t, q], camera-to-world) or None.
     ``exposure_paths``: (stamps, start (N, 7), end (N, 7)) camera-to-world, or None.
     ``exposure_rows``: per-row exposure paths of a rolling-shutter sequence (``exposure_rows.txt``), or None.
+    ``lens``: the camera its calibration file describes, when its images are undistorted at load into
+    ``camera`` (:mod:`~mbavo_jax.datasets.distortion`); None: ``camera`` is the calibration itself.
     """
 
     name: str
@@ -54,6 +57,14 @@ class Sequence:
     kind: str = ""
     meta: dict = dataclasses.field(default_factory=dict)  # e.g. camera.yaml extras: response_gamma
     exposure_rows: ExposureRows | None = None
+    lens: CameraModel | None = None
+
+    @property
+    def camera_model(self) -> dict:
+        """The lens model its calibration gives (what ``mbavo info`` and run.yaml record):
+        ``{"model": "pinhole"}``, or the model, its coefficients and the intrinsics and size it was
+        calibrated at (the images undistorted at load into ``camera``)."""
+        return {"model": "pinhole"} if self.lens is None else self.lens.describe()
 
     @property
     def readout_s(self) -> float:

@@ -6,9 +6,15 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ..io import principal_point_problem
+__all__ = ["PinholeCamera", "principal_point_problem"]
 
-__all__ = ["PinholeCamera"]
+
+def principal_point_problem(cx: float, cy: float, width: int, height: int) -> str:
+    """What is wrong with a principal point outside the image (pixel centres 0 .. size-1), or ''."""
+    for key, c, size, name in (("cx", cx, width, "width"), ("cy", cy, height, "height")):
+        if not 0 <= c <= size - 1:
+            return f"principal point {key} = {c:g} is outside the image (0 <= {key} <= {size - 1} for {name} {size})"
+    return ""
 
 
 class PinholeCamera(eqx.Module):

@@ -6,18 +6,17 @@ image first, then the trajectory, exposure and keyframe lines, and the row last.
 cuts the other files back to the last committed frame, so ``--resume`` continues from a state in
 which every file agrees, wherever the run was stopped. A pipeline whose state cannot be rebuilt
 from these files (the monocular one: its window and points) also leaves a :class:`Checkpoint`
-after each committed frame; its resume cuts the run back to the checkpoint's frame.
+after each committed frame (``checkpoint.npz``: arrays and a JSON header, see ``odometry.checkpoint``;
+never a pickle); its resume cuts the run back to the checkpoint's frame.
 """
 
 from __future__ import annotations
 
 import csv
-import dataclasses
 import hashlib
 import io
 import os
 import pathlib
-import pickle
 import shutil
 
 import numpy as np
@@ -27,13 +26,15 @@ from ..config import RunConfig, as_dict
 from ..errors import DataError, MbavoError
 from ..evaluation.runs import RUN_PLOTS
 from ..io import PlyWriter, read_ply
+from .checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 
 __all__ = ["RUN_FILES", "clear_run", "sequence_fingerprint", "check_resume", "record_run", "reconcile", "committed_rows",
            "Checkpoint", "write_checkpoint", "read_checkpoint", "cut_to_checkpoint"]
 
-CHECKPOINT = "checkpoint.pkl"
+CHECKPOINT = "checkpoint.npz"
+OLD_CHECKPOINT = "checkpoint.pkl"  # earlier versions' checkpoint (a pickle): removed with a run, refused by --resume, never read
 RUN_FILES = ("trajectory.txt", "exposure.txt", "exposure_spline.txt", "keyframes.txt", "frames.csv", "config.yaml", "run.yaml",
-             "points.ply", CHECKPOINT, *RUN_PLOTS)
+             "points.ply", CHECKPOINT, OLD_CHECKPOINT, *RUN_PLOTS)
 TEXT_RECORDS = ("trajectory.txt", "exposure.txt", "exposure_spline.txt", "keyframes.txt")  # stamped lines, cut back by ``reconcile``
 
 
@@ -56,7 +57,8 @@ def sequence_fingerprint(seq) -> dict:
     first = pathlib.Path(seq[0].path) if len(seq) else None
     if first is not None and first.is_file():
         h.update(first.read_bytes())
-    return {"path": str(pathlib.Path(seq.path).resolve()), "frames": len(seq), "digest": h.hexdigest()[:16]}
+    return {"path": str(pathlib.Path(seq.path).resolve()), "frames": len(seq), "digest": h.hexdigest()[:16],
+            "camera_model": seq.camera_model["model"]}
 
 
 def _settings_changes(before: dict, after: dict) -> list[str]:
@@ -161,37 +163,21 @@ def reconcile(out: pathlib.Path, last_index: int | None = None) -> list[dict]:
     return rows
 
 
-@dataclasses.dataclass(frozen=True)
-class Checkpoint:
-    """A pipeline's state (a ``RunState``) after frame ``index`` was committed, with the vertices
-    points.ply had then (``points``); the triptychs drawn are the state's own count."""
-
-    index: int
-    state: object
-    points: int = 0
-
-
 def write_checkpoint(out: pathlib.Path, checkpoint: Checkpoint) -> None:
-    """``checkpoint`` pickled to the run folder, replacing the previous one in one step."""
-    tmp = out / (CHECKPOINT + ".tmp")
-    with open(tmp, "wb") as fh:
-        pickle.dump(checkpoint, fh, protocol=pickle.HIGHEST_PROTOCOL)
-    os.replace(tmp, out / CHECKPOINT)
+    """``checkpoint`` written to the run folder (plain data), replacing the previous one in one step."""
+    save_checkpoint(out / CHECKPOINT, checkpoint)
 
 
 def read_checkpoint(out: pathlib.Path) -> Checkpoint:
-    """The run folder's :class:`Checkpoint` (a file this program wrote: pickle runs code as it loads)."""
+    """The run folder's :class:`Checkpoint`, read as data only (``odometry.checkpoint``); a missing,
+    foreign or malformed one is one line, and an earlier version's pickle is refused unread."""
     path = out / CHECKPOINT
-    try:
-        with open(path, "rb") as fh:
-            checkpoint = pickle.load(fh)
-    except FileNotFoundError:
-        raise DataError(path, "missing, so the monocular state is not known: cannot --resume (run without --resume to start afresh)") from None
-    except Exception as exc:  # a file of another version, or cut short
-        raise DataError(path, f"unreadable ({type(exc).__name__}): cannot --resume (run without --resume to start afresh)") from None
-    if not isinstance(checkpoint, Checkpoint):
-        raise DataError(path, "not a checkpoint of this program: cannot --resume (run without --resume to start afresh)")
-    return checkpoint
+    if not path.is_file() and (out / OLD_CHECKPOINT).is_file():
+        raise DataError(out / OLD_CHECKPOINT, "a checkpoint of an earlier version (a pickle), which is never read: cannot --resume "
+                        "(run without --resume to start afresh)")
+    if not path.is_file():
+        raise DataError(path, "missing, so the monocular state is not known: cannot --resume (run without --resume to start afresh)")
+    return load_checkpoint(path)
 
 
 def cut_to_checkpoint(out: pathlib.Path, checkpoint: Checkpoint) -> list[dict]:

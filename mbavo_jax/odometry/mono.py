@@ -42,7 +42,7 @@ from ..mono.motions import Motions, PoseAt
 from ..mono.window import Window, add_keyframe, add_points, frame_affine, relative_affine, world_points
 from ..tracking import Keyframe, Status, track
 from .inview import ViewStats, in_view_stats
-from .rgbd import SETTLED_SAMPLES, RGBDPipeline
+from .rgbd import RGBDPipeline
 from .state import Fit, FrameOutcome, KeyframeState, NewKeyframe, Pairing, RunState
 
 __all__ = ["MonoPipeline", "MonoState", "PointCloud"]
@@ -137,10 +137,6 @@ class MonoPipeline(RGBDPipeline):
         blind to blur and deblurring nothing, pairs frames only once its window holds
         ``SAMPLING_KEYFRAMES`` keyframes, and a pair needs two speeds far enough apart."""
         return self.config.mono.exposure_probe
-
-    def probe_done(self, state: RunState) -> bool:
-        """Whether the exposure probe may stop: its estimate has settled (``odometry.exposure_settled``)."""
-        return self.estimate(state).settled(SETTLED_SAMPLES, self.config.odometry.exposure_settled)
 
     def step(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
         t0 = time.perf_counter()

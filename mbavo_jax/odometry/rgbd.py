@@ -138,8 +138,10 @@ class RGBDPipeline:
         return self.config.odometry.exposure_probe
 
     def probe_done(self, state: RunState) -> bool:
-        """Whether the exposure probe may stop before ``probe_frames``: never (its frames are few)."""
-        return False
+        """Whether the exposure probe may stop before ``probe_frames``: its estimate has settled
+        (``odometry.exposure_settled``). A path whose speed changes slowly gives its first sample late,
+        and a run started from the guess instead tracks and deblurs those frames along a wrong exposure."""
+        return self.estimate(state).settled(SETTLED_SAMPLES, self.config.odometry.exposure_settled)
 
     def exposure_of(self, state: RunState, frame, frame_dt: float) -> float:
         """The frame's exposure time (s): recorded in the data (else ``odometry.exposure_s``) when
@@ -191,17 +193,21 @@ class RGBDPipeline:
         """The tracker's settings for this frame (:meth:`tracker_config`). A global-shutter frame is
         tracked as sharp (one pose, start = end) when no velocity ``informed`` its guess (a path of
         zero length is a stationary point of the blur model to first order: from it, start and end
-        barely separate, whatever n), or, with adaptive n, when its guess ``init`` blurs the
-        keyframe's points less than ``odometry.sharp_blur_px``."""
+        barely separate, whatever n). A frame whose guess ``init`` blurs the keyframe's points less
+        than ``odometry.adaptive_below_px`` is tracked with adaptive n (few virtual frames for a little
+        blur), and, with adaptive n, as sharp below ``odometry.sharp_blur_px``."""
         tracker = self.tracker_config(frame, informed, state)
         if not tracker.blur_aware or readout > 0 or tracker.trajectory != "linear":
             return tracker
         if not informed:
             return blind(tracker)
-        if tracker.n_mode != "adaptive":
+        odo = self.config.odometry
+        if tracker.n_mode != "adaptive" and odo.adaptive_below_px <= odo.sharp_blur_px:
             return tracker
-        sharp = predicted_blur_px(state.keyframe.keyframe, init) < self.config.odometry.sharp_blur_px
-        return blind(tracker) if sharp else tracker
+        blur = predicted_blur_px(state.keyframe.keyframe, init)
+        if tracker.n_mode != "adaptive" and blur >= odo.adaptive_below_px:
+            return tracker
+        return blind(tracker) if blur < odo.sharp_blur_px else adaptive_n(tracker)
 
     def short_exposure(self, state: RunState, frame) -> bool:
         """Whether the frame's exposure is at most ``odometry.short_exposure`` of the frame interval,

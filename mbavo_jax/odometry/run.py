@@ -27,6 +27,7 @@ from ..tracking import Keyframe, Status
 from ..tracking.memory import check_memory
 from .exposure import RawFrame, with_next
 from .folder import Checkpoint, check_resume, clear_run, cut_to_checkpoint, read_checkpoint, reconcile, record_run, write_checkpoint
+from .lock import RunLock
 from .outputs import RunOutputs, keyframe_image_path, read_keyframe_image
 from .mono import MonoPipeline
 from .rgbd import RGBDPipeline
@@ -176,25 +177,42 @@ def _compilation(before: dict, startup: float | None) -> dict:
 
 
 def _prepare(out: pathlib.Path, seq, config: RunConfig, resume: bool, resume_anyway: bool, pipeline: Pipeline,
-             progress: bool, released: str = "") -> tuple[RunState, int, str]:
-    """The run folder made ready, the loop's starting point and what the image size changes in
-    the settings ('' when nothing): checks (memory, image size, for a resume the sequence and
-    settings) first, then a fresh folder or the reconciled earlier run. With the progress, the
-    notes (the size note, ``released``: the programs released before the run) are printed once the
-    checks have passed: input refused there gets its one line only."""
+             progress: bool, released: str = "") -> tuple[RunState, int, str, RunLock]:
+    """The run folder made ready and locked, the loop's starting point, what the image size changes
+    in the settings ('' when nothing) and the folder's lock (held: the caller releases it): checks
+    (memory, image size) first, then the lock (refused while another process writes the folder),
+    then, for a resume, the sequence and settings, and a fresh folder or the reconciled earlier run.
+    With the progress, the notes (the size note, ``released``: the programs released before the
+    run) are printed once the checks have passed: input refused there gets its one line only."""
     check_memory(config, seq.camera.height, seq.camera.width)
     note = config.tracker.size_note(seq.camera.height, seq.camera.width)  # raises on images too small to track
     prepare_out_dir(out)
+    lock = RunLock(out)  # one writer per run folder: a second one is refused before it touches a file
+    try:
+        state, start = _ready(out, seq, config, resume, resume_anyway, pipeline, progress, (released, note), lock)
+    except BaseException:
+        lock.release()
+        raise
+    return state, start, note, lock
+
+
+def _ready(out: pathlib.Path, seq, config: RunConfig, resume: bool, resume_anyway: bool, pipeline: Pipeline,
+           progress: bool, notes: tuple[str, ...], lock: RunLock) -> tuple[RunState, int]:
+    """The locked run folder ready (see :func:`_prepare`): the loop's state and first frame. The
+    lock is signed with this process's pid once the checks of a resume have passed."""
     if resume:
         check_resume(out, seq, config, resume_anyway)
-    state, start = resume_state(out, seq, pipeline, progress) if resume else (start_state(seq, pipeline, progress), 0)
-    for line in (released, note) if progress else ():
+        state, start = resume_state(out, seq, pipeline, progress)
+    lock.sign()  # the run goes ahead: a second writer's message names this process
+    if not resume:
+        state, start = start_state(seq, pipeline, progress), 0
+    for line in notes if progress else ():
         if line:
             print(f"mbavo: note: {line}", file=sys.stderr)
     if start == 0:
         clear_run(out)
     record_run(out, seq, config, start, resume and resume_anyway)
-    return state, start, note
+    return state, start
 
 
 def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False, max_frames: int | None = None,
@@ -217,10 +235,10 @@ def run_odometry(seq, out, config: RunConfig = RunConfig(), resume: bool = False
     t_start, counts_start, startup = time.perf_counter(), compile_counts(), None
     if isinstance(pipeline, MonoPipeline) and seq.has_depth:  # monocular: the depth maps are not read
         seq = open_sequence(seq.path, seq.kind, depth=False)
-    state, start, note = _prepare(out, seq, config, resume, resume_anyway, pipeline, progress, released)
+    state, start, note, lock = _prepare(out, seq, config, resume, resume_anyway, pipeline, progress, released)
     first, outcome = state, None
     n_total = len(seq) if max_frames is None else min(len(seq), max_frames)
-    with RunOutputs(out, seq.camera, config.tracker.response_gamma, append=start > 0) as outputs, \
+    with lock, RunOutputs(out, seq.camera, config.tracker.response_gamma, append=start > 0) as outputs, \
             bar(max(n_total - start, 0), "track", progress) as pbar:
         waiting = 0
         for index in range(start, n_total):

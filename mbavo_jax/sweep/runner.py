@@ -5,6 +5,7 @@ odometry`` both run through :func:`run_sweep`. JAX-free (the workers import JAX)
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -13,9 +14,10 @@ import pathlib
 import sys
 
 from ..config import SweepConfig
+from ..errors import MbavoError
 from ..progress import bar
-from .engine import map_unordered
-from .spec import SweepSpec, Task
+from .engine import check_engine, map_unordered
+from .spec import SweepSpec, Task, check_names
 from .table import format_markdown, write_tables
 from .task import error_row, finished_row, prepare_sequence, run_task, sequence_ready
 
@@ -49,6 +51,7 @@ def _absolute(path: str) -> str:
 
 def _data_folders(spec: SweepSpec, out: pathlib.Path) -> dict[str, str]:
     """Each sequence's folder: its own path, or ``<out>/data/<name>`` for a generated one."""
+    check_names("sweep", spec)  # every name a folder name inside ``out`` (runs/<sequence>/<method> too)
     return {s.name: str(out / "data" / s.name) if s.generated else _absolute(s.path) for s in spec.sequences}
 
 
@@ -67,8 +70,9 @@ def _prepare(spec: SweepSpec, out: pathlib.Path, settings: SweepConfig, progress
     wanted = [(dataclasses.replace(s, source=_absolute(s.source)), folders[s.name]) for s in spec.sequences if s.generated]
     jobs = [job for job in wanted if not sequence_ready(*job)]
     failed = {}
-    with bar(len(jobs), "sequences", progress and bool(jobs), unit="seq") as pbar:
-        for i, err in map_unordered(prepare_sequence, jobs, settings, lambda job, exc: f"generating the sequence failed: {exc}"):
+    results = map_unordered(prepare_sequence, jobs, settings, lambda job, exc: f"generating the sequence failed: {exc}")
+    with bar(len(jobs), "sequences", progress and bool(jobs), unit="seq") as pbar, contextlib.closing(results):
+        for i, err in results:
             if err:
                 failed[jobs[i][0].name] = err
             pbar.update()
@@ -88,8 +92,9 @@ def _execute(tasks: list[Task], settings: SweepConfig, failed: dict[str, str], p
         else:
             todo.append(i)
     crashed = lambda task, exc: error_row(task, f"worker failed: {type(exc).__name__}: {' '.join(str(exc).split())[:300]}")
-    with bar(len(todo), "sweep", progress and bool(todo), unit="run") as pbar:
-        for j, row in map_unordered(run_task, [tasks[i] for i in todo], settings, crashed):
+    results = map_unordered(run_task, [tasks[i] for i in todo], settings, crashed)
+    with bar(len(todo), "sweep", progress and bool(todo), unit="run") as pbar, contextlib.closing(results):
+        for j, row in results:
             rows[todo[j]] = row
             pbar.set_postfix_str(f"{row['sequence']}/{row['method']}: {row['status']}")
             pbar.update()
@@ -99,26 +104,36 @@ def _execute(tasks: list[Task], settings: SweepConfig, failed: dict[str, str], p
 def run_sweep(spec: SweepSpec, out, settings: SweepConfig = SweepConfig(), progress: bool = True) -> SweepResult:
     """Run ``spec`` into ``out``: ``data/`` (generated sequences), ``runs/<sequence>/<method>/``
     (each run's outputs and result.json), results.csv, results.md, ate.png. Runs an earlier call
-    finished with the same task are kept unless ``settings.rerun``; failures are rows."""
+    finished with the same task are kept unless ``settings.rerun``; failures are rows. Names that
+    are not safe folder names, or an engine that cannot start, are refused before ``out`` is made;
+    a second sweep into the same ``out`` while this one runs is refused (the folder's lock)."""
     from ..io import prepare_out_dir
+    from ..odometry.lock import RunLock
 
+    check_names("sweep", spec)
+    check_engine(settings)
     out = prepare_out_dir(out)
-    failed = _prepare(spec, out, settings, progress)
-    tasks = tasks_of(spec, out)
-    rows, executed = _execute(tasks, settings, failed, progress)
-    files = write_tables(rows, out)
+    with RunLock(out) as lock:  # one sweep per folder: a second one would rewrite the runs' result.json
+        lock.sign()
+        failed = _prepare(spec, out, settings, progress)
+        tasks = tasks_of(spec, out)
+        rows, executed = _execute(tasks, settings, failed, progress)
+        files = write_tables(rows, out)
     return SweepResult(rows, executed, len(tasks) - executed - sum(t.sequence in failed for t in tasks), files)
 
 
 def main(path, out, settings: SweepConfig, fmt: str = "table", quiet: bool = False) -> int:
     """``mbavo sweep SWEEP.yaml --out DIR``: the table (markdown, or the rows as JSON) on stdout,
-    where the files are and how many runs ran, were kept or failed on stderr."""
+    where the files are and how many runs ran, were kept or failed on stderr; MbavoError (exit 1)
+    when every run failed, once the table is written."""
     from .spec import load_sweep
 
     spec = load_sweep(path)
     res = run_sweep(spec, out, settings, progress=not quiet)
     print(json.dumps(res.rows, indent=2) if fmt == "json" else format_markdown(res.rows))
     print(summary_line(res), file=sys.stderr)
+    if not any(r.get("status") == "ok" for r in res.rows):
+        raise MbavoError(f"{path}: all {len(res.rows)} runs failed (the errors are in {res.files['markdown']})")
     return 0
 
 

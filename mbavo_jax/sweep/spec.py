@@ -14,16 +14,16 @@ import pathlib
 import re
 import typing
 
-from ..config import PRESETS, SECTIONS, BenchConfig, SynthConfig, _yaml_value, load_config
+from ..config import PRESETS, SECTIONS, BenchConfig, SynthConfig, _yaml_value, load_config, refuse_command_line_only
 from ..errors import ConfigError
 from ..methods import ODOMETRY_METHODS
+from ..names import check_name
 
-__all__ = ["PEERS", "SequenceSpec", "SweepSpec", "Task", "load_sweep", "parse_sweep", "as_overrides", "expand"]
+__all__ = ["PEERS", "SequenceSpec", "SweepSpec", "Task", "load_sweep", "parse_sweep", "as_overrides", "expand", "check_names"]
 
 PEERS = tuple(m for m in ODOMETRY_METHODS if not m.startswith("ours_"))
 TOP_KEYS = ("sequences", "configurations", "peers", "base", "config", "peer_depth_max")
 SYNTH_KEYS = tuple(f.name for f in dataclasses.fields(SynthConfig))
-NAME = re.compile(r"^[A-Za-z0-9_.=+-]+$")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,6 +101,13 @@ def expand(name: str, values: dict, is_product) -> list[tuple[str, dict]]:
     return out
 
 
+def _no_empty_product(where: str, what: str, values: dict, is_product) -> None:
+    """A key whose list is empty would make an empty product (nothing to run): one line instead."""
+    empty = [str(k) for k, v in values.items() if is_product(k, v) and not v]
+    if empty:
+        raise ConfigError(f"{where}: {what}: {empty[0]}: [] is an empty list, which gives no runs (give at least one value)")
+
+
 def _setting_is_list(key: str) -> bool:
     section, _, field = key.partition(".")
     cls = SECTIONS.get(section)
@@ -151,17 +158,19 @@ def _sequence_entries(where: str, i: int, entry) -> list[SequenceSpec]:
     if kind == "path":
         _unknown(where, entry, ("path",), what)
         return [SequenceSpec(str(name or pathlib.Path(str(entry["path"])).name), path=str(entry["path"]))]
+    is_list = lambda k, v: isinstance(v, list)
+    _no_empty_product(where, what, entry, is_list)
     if kind == "from":
         _unknown(where, entry, ("from", "blur_px", "seed"), what)
         base = str(name or f"{pathlib.Path(str(entry['from'])).name}_blurred")
         try:
             return [SequenceSpec(label, source=str(v["from"]), blur_px=float(v.get("blur_px", 20.0)), seed=int(v.get("seed", 0)))
-                    for label, v in expand(base, entry, lambda k, v: isinstance(v, list))]
+                    for label, v in expand(base, entry, is_list)]
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"{where}: {what}: blur_px and seed must be numbers ({exc})") from None
     _unknown(where, entry, ("preset", *SYNTH_KEYS), what)
     out = []
-    for label, v in expand(str(name or entry["preset"]), entry, lambda k, v: isinstance(v, list)):
+    for label, v in expand(str(name or entry["preset"]), entry, is_list):
         preset = v.pop("preset")
         if preset not in PRESETS:
             raise ConfigError(f"{where}: {what}: unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
@@ -179,6 +188,7 @@ def _configurations(where: str, raw, base: tuple[str, ...], config: str) -> dict
     out = {}
     for name, values in _mapping(where, raw, "configurations").items():
         values = _mapping(where, values, f"configurations.{name}")
+        _no_empty_product(where, f"configurations.{name}", values, _override_product)
         for label, chosen in expand(str(name), values, _override_product):
             overrides = (*base, *as_overrides(chosen))
             try:
@@ -189,11 +199,11 @@ def _configurations(where: str, raw, base: tuple[str, ...], config: str) -> dict
     return out
 
 
-def _check_names(where: str, spec: SweepSpec) -> None:
+def check_names(where: str, spec: SweepSpec) -> None:
+    """Every sequence and method name is a safe folder name (``names.check_name``), none twice."""
     for what, names in (("sequence", [s.name for s in spec.sequences]), ("method", spec.methods)):
-        bad = [n for n in names if not NAME.match(n)]
-        if bad:
-            raise ConfigError(f"{where}: {what} name {bad[0]!r} may hold only letters, digits and _ . = + - (give name:)")
+        for n in names:
+            check_name(n, where, what)
         twice = sorted({n for n in names if names.count(n) > 1})
         if twice:
             raise ConfigError(f"{where}: {what} name(s) {', '.join(twice)} appear twice (give each a name:)")
@@ -221,7 +231,7 @@ def parse_sweep(data, where: str = "sweep") -> SweepSpec:
                      peers=tuple(peers), base=base, config=config, peer_depth_max=depth_max)
     if not spec.methods:
         raise ConfigError(f"{where}: nothing to run: give configurations: (e.g. ours: {{}}) or peers:")
-    _check_names(where, spec)
+    check_names(where, spec)
     return spec
 
 
@@ -238,4 +248,6 @@ def load_sweep(path) -> SweepSpec:
         data = yaml.safe_load(read_text(p, "sweep file"))
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: not valid YAML ({str(exc).splitlines()[0]})") from None
-    return parse_sweep(data, str(p))
+    spec = parse_sweep(data, str(p))
+    refuse_command_line_only(str(p), data)
+    return spec

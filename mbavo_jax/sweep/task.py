@@ -67,7 +67,7 @@ def _sequence_info(seq, data: str, config) -> dict:
 
 def _score(task: Task) -> dict:
     """Run the task's method over its sequence and score it."""
-    from ..bench import run_ours, run_peer
+    from ..methods import run_ours, run_peer
     from ..config import calibration_of, load_config
     from ..datasets import open_sequence
 

@@ -28,7 +28,7 @@ import sys
 import tempfile
 import time
 
-from .config import BenchConfig, RunConfig
+from ..config import BenchConfig, RunConfig
 
 __all__ = ["PROFILE_PARTS", "profile_run", "timed_runs", "startup_runs", "memory_growth", "speed_benchmark", "format_speed_table", "main_speed"]
 
@@ -58,8 +58,8 @@ def _part_seconds(stats: pstats.Stats) -> dict[str, float]:
 def profile_run(seq, out, config: RunConfig = RunConfig(), max_frames: int | None = None) -> dict:
     """One ``run_odometry`` of ``seq`` into ``out`` under cProfile: total seconds, seconds per
     part (:data:`PROFILE_PARTS`), the rest, compile seconds and the run's summary."""
-    from .odometry import run_odometry
-    from .runtime import compile_counts
+    from ..odometry import run_odometry
+    from ..runtime import compile_counts
 
     before = compile_counts()
     profiler = cProfile.Profile()
@@ -112,7 +112,7 @@ def timed_runs(seq, out, variants: dict[str, RunConfig], frames: int, reps: int)
     """Wall seconds of ``reps`` unprofiled ``run_odometry`` calls of each variant (its run settings)
     on ``seq``'s first ``frames`` frames, the variants in turns, after one warm-up run of each in this
     process (tracing and compilation are the start-up runs' to measure)."""
-    from .odometry import run_odometry
+    from ..odometry import run_odometry
 
     seconds = {name: [] for name in variants}
     for rep in range(reps + 1):
@@ -131,9 +131,10 @@ def speed_benchmark(cfg: BenchConfig, quiet: bool = False) -> dict:
     (:func:`timed_runs`), then ours once under the profile; Open3D hybrid's frame-to-frame odometry on
     the same frames; and, with ``cfg.startup``, the start-up of fresh processes with an empty cache,
     a full one and none."""
-    from .bench import bench_data, run_peer, with_hidden_exposure
-    from .config import calibration_of, load_config
-    from .datasets import open_sequence
+    from ..config import calibration_of, load_config
+    from ..datasets import open_sequence
+    from ..methods import run_peer
+    from .sequences import bench_data, with_hidden_exposure
 
     out, results = pathlib.Path(cfg.out).parent / "bench_speed", {}
     presets = {p: bench_data(p, cfg, cfg.frames, quiet) for p in cfg.preset.split(",") if p}
@@ -157,13 +158,13 @@ def speed_benchmark(cfg: BenchConfig, quiet: bool = False) -> dict:
 def variant_scores(seq, out, variants: dict[str, RunConfig]) -> dict[str, dict]:
     """ATE (m, NaN: lost), keyframes and mean keyframe PSNR (dB, against the generated sharp frames)
     of each variant's first timed run (``out/<variant>/run1``), scored as ``mbavo bench odometry`` does."""
-    from .bench import _ate, deblur_quality
-    from .io import read_tum_trajectory
+    from ..io import read_tum_trajectory
+    from ..methods import ate_rmse, deblur_quality
 
     scores = {}
     for name, config in variants.items():
         run = pathlib.Path(out) / name / "run1"
-        scores[name] = {"ate_m": _ate(seq, run, config.evaluation),
+        scores[name] = {"ate_m": ate_rmse(seq, run, config.evaluation),
                         "keyframes": len(read_tum_trajectory(run / "keyframes.txt")[0]),
                         "keyframe_psnr": deblur_quality(seq, run).get("psnr_deblurred")}
     return scores

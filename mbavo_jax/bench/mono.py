@@ -24,10 +24,10 @@ import time
 
 import numpy as np
 
-from .config import HUBER_DRAWS, BenchConfig, EvalConfig, RunConfig, TrackerConfig, calibration_of
-from .datasets import open_sequence
-from .errors import MbavoError
-from .io import read_tum_trajectory
+from ..config import HUBER_DRAWS, BenchConfig, EvalConfig, RunConfig, TrackerConfig, calibration_of
+from ..datasets import open_sequence
+from ..errors import MbavoError
+from ..io import read_tum_trajectory
 
 __all__ = ["MONO_METHODS", "mono_configs", "draw_huber", "run_draws", "run_mono_benchmark", "format_mono_table", "format_seed_table",
            "main_mono", "seed_groups", "seed_means", "trajectory_scores"]
@@ -47,7 +47,7 @@ def mono_configs(base: TrackerConfig, methods=MONO_METHODS) -> dict[str, RunConf
 def trajectory_scores(seq, run: pathlib.Path, config: EvalConfig, delta: int = 10) -> dict:
     """ATE after Sim(3) alignment (m, % of the matched ground-truth path length) and the drift over
     ``delta`` matched frames: translation error and segment-length (scale) error, % of the segment."""
-    from .evaluation.metrics import ape, relative_drift
+    from ..evaluation.metrics import ape, relative_drift
 
     if seq.groundtruth is None or not (run / "trajectory.txt").is_file():
         return {}
@@ -82,8 +82,8 @@ def _timing(rows: list[dict], seconds: float) -> dict:
 def run_method(seq, run: pathlib.Path, config: RunConfig, progress: bool) -> dict:
     """One method over a sequence: scores, frames without a pose, keyframes, timing (with the
     seconds spent compiling or loading programs, which the timing includes)."""
-    from .odometry import run_odometry
-    from .runtime import compile_counts
+    from ..odometry import run_odometry
+    from ..runtime import compile_counts
 
     t0, before = time.perf_counter(), compile_counts()
     summ = run_odometry(seq, run, config, progress=progress)
@@ -184,7 +184,7 @@ def format_mono_table(results: dict) -> str:
 def main_mono(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
     """``mbavo bench mono``: the presets of ``cfg.presets`` (exposure hidden, depth not read by the
     mono methods), KITTI 07 and the TUM clip sharp and blurred."""
-    from .bench import bench_data, real_clip, with_hidden_exposure, tum_blurred
+    from .sequences import bench_data, real_clip, tum_blurred, with_hidden_exposure
 
     groups = seed_groups(cfg)
     seqs = {name: bench_data(p, dataclasses.replace(cfg, seed=s), cfg.frames, quiet, exact=True)

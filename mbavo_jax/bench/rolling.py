@@ -30,8 +30,8 @@ import time
 
 import numpy as np
 
-from .config import PRESETS, BenchConfig, RunConfig, SynthConfig, as_dict, calibration_of, load_config
-from .errors import ConfigError, MbavoError
+from ..config import PRESETS, BenchConfig, RunConfig, SynthConfig, as_dict, calibration_of, load_config
+from ..errors import ConfigError, MbavoError
 
 __all__ = ["ROLLING_METHODS", "ROLLING_DEFAULTS", "RollingSequence", "parse_rolling_methods", "rolling_sequences", "method_config",
            "run_rolling_benchmark", "format_rolling_table", "main_rolling"]
@@ -98,7 +98,7 @@ def _generated(seq: RollingSequence, root: pathlib.Path, quiet: bool) -> pathlib
     """The folder of ``seq`` under ``root``: generated unless a previous call left one with the same settings."""
     import yaml
 
-    from .synthetic import generate_sequence
+    from ..synthetic import generate_sequence
 
     path = root / seq.name
     synth_yaml = path / "synth.yaml"
@@ -118,7 +118,7 @@ def method_config(method: str, meta: dict) -> RunConfig:
 def _track_ms(run: pathlib.Path) -> float:
     """Median tracking call (frames.csv ``ms``) of a run's tracked frames, the first (compilation)
     left out when there are others; NaN when none."""
-    from .odometry.folder import committed_rows
+    from ..odometry.folder import committed_rows
 
     ms = [float(r["ms"]) for r in committed_rows(run) if r["status"] != "keyframe" and r.get("ms")]
     return float(np.median(ms[1:] if len(ms) > 1 else ms)) if ms else float("nan")
@@ -127,9 +127,9 @@ def _track_ms(run: pathlib.Path) -> float:
 def _row_error(seq, run: pathlib.Path, config: RunConfig) -> dict:
     """Per-row endpoint error of the exposure paths of the run's tracked frames (global-shutter
     ground truth: every row the frame's path); {} when the run wrote none."""
-    from .evaluation import global_shutter_rows, row_path_error
-    from .geometry.trajectory import readout_fraction
-    from .io import read_exposure_file, read_exposure_spline_file
+    from ..evaluation import global_shutter_rows, row_path_error
+    from ..geometry.trajectory import readout_fraction
+    from ..io import read_exposure_file, read_exposure_spline_file
 
     if not (run / "exposure.txt").is_file() or seq.exposure_paths is None or seq.exposures is None:
         return {}
@@ -152,8 +152,8 @@ def _tracked_only(est: tuple, run: pathlib.Path) -> tuple:
     """The exposure paths of ``est`` (stamps first) whose frames the tracker estimated (frames.csv
     status converged or max_steps): a keyframe started without tracking (the first frame, a reset)
     has a placeholder path (start = end) that no method estimated."""
-    from .evaluation import associate
-    from .odometry.folder import committed_rows
+    from ..evaluation import associate
+    from ..odometry.folder import committed_rows
 
     tracked = [float(r["timestamp"]) for r in committed_rows(run) if r["status"] in ("converged", "max_steps")]
     keep, _ = associate(est[0], np.sort(tracked), max_diff=1e-6)
@@ -162,8 +162,8 @@ def _tracked_only(est: tuple, run: pathlib.Path) -> tuple:
 
 def _run_method(seq, run: pathlib.Path, method: str, progress: bool) -> dict:
     """One method over one sequence: its scores, or ``error`` when its settings do not exist."""
-    from .evaluation import evaluate_run
-    from .odometry import run_odometry
+    from ..evaluation import evaluate_run
+    from ..odometry import run_odometry
 
     try:
         config = method_config(method, seq.meta)
@@ -180,12 +180,12 @@ def _run_method(seq, run: pathlib.Path, method: str, progress: bool) -> dict:
 
 def call_cost(seq, pairs: int = 6) -> dict:
     """One tracking call of ``rs`` and of ``blur`` on the same frame pairs (sharp keyframe, next
-    frame, constant-velocity guess: ``bench.tracking_pairs``), side by side in this process: the
+    frame, constant-velocity guess: :func:`~mbavo_jax.bench.sequences.tracking_pairs`), side by side in this process: the
     median ms per call and per LM step of each (the first pair, which compiles, left out) and the
     ratios rs / blur."""
-    from .bench import tracking_pairs
-    from .geometry.trajectory import readout_fraction
-    from .tracking import Keyframe, track
+    from ..geometry.trajectory import readout_fraction
+    from ..tracking import Keyframe, track
+    from .sequences import tracking_pairs
 
     tau = float(seq.exposures[0])
     configs = {m: method_config(m, seq.meta).tracker for m in ("rs", "blur")}
@@ -230,7 +230,7 @@ def _cost(results: dict) -> dict:
 def run_rolling_benchmark(cfg: BenchConfig, methods: list[str], progress: bool = True) -> dict:
     """Generate (or reuse) the sequences of ``cfg`` under ``cfg.out``/data and run ``methods`` on
     each into ``cfg.out``/runs; the scores per sequence and method, and the cost of the RS model."""
-    from .datasets import open_sequence
+    from ..datasets import open_sequence
 
     root = pathlib.Path(cfg.out)
     results = {}
@@ -282,7 +282,7 @@ def format_rolling_table(res: dict) -> str:
 
 def main_rolling(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
     """``mbavo bench rolling-shutter``: run, print the table (or JSON), write OUT/results.json and OUT/table.md."""
-    from .io import prepare_out_dir
+    from ..io import prepare_out_dir
 
     methods = parse_rolling_methods(cfg.methods)
     rolling_sequences(cfg)  # reject bad presets and readouts before generating anything

@@ -1,0 +1,99 @@
+"""The benchmarks' data: generated sequences of the blur presets (made once, under ``runs/``), their
+copies with the exposure metadata hidden, the real clips of the shared data folder, the blurred TUM
+clip, and the tracking benchmark's frame pairs."""
+
+from __future__ import annotations
+
+import pathlib
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..config import PRESETS, BenchConfig, OdometryConfig, SynthConfig
+from ..datasets import open_sequence
+from ..errors import MbavoError
+from ..geometry import ExposureTrajectory, Pose
+from ..io import read_image_gray
+from ..tracking import constant_velocity_guess
+
+__all__ = ["bench_data", "with_hidden_exposure", "real_clip", "tum_blurred", "tracking_pairs"]
+
+
+def _P(v):
+    return Pose.from_vector(jnp.asarray(v, jnp.float32))
+
+
+def tracking_pairs(seq, frames: int):
+    """(index, sharp keyframe, its depth, next frame, constant-velocity guess, true path) per pair; the
+    guess's exposure is the recorded one, or without metadata ``odometry.exposure_guess`` of the interval."""
+    _, mids = seq.groundtruth
+    _, S, E = seq.exposure_paths
+    dt = float(np.median(np.diff(seq.timestamps)))
+    tau = float(seq.exposures[0]) if seq.exposures is not None else OdometryConfig().exposure_guess * dt
+    for k in range(1, min(len(seq) - 1, frames + 1)):
+        sharp_path = pathlib.Path(seq[k].path).parent.parent / "sharp" / pathlib.Path(seq[k].path).name
+        T_w_ref = _P(mids[k])
+        init = constant_velocity_guess(T_w_ref, _P(mids[k - 1]), _P(mids[k]), dt, tau)
+        gt = ExposureTrajectory(T_w_ref.inverse().compose(_P(S[k + 1])), T_w_ref.inverse().compose(_P(E[k + 1])))
+        yield k, read_image_gray(sharp_path), seq[k].depth, seq[k + 1], init, gt
+
+
+def bench_data(preset: str, cfg: BenchConfig, frames: int, quiet: bool = False, depth_model: str = "exact",
+               scene: str = "room", exact: bool = False) -> pathlib.Path:
+    """The generated sequence of a preset (``runs/bench_<preset>[_<scene>]_<w>x<h>_seed<s>[_sensor]``),
+    made again when missing, shorter than ``frames`` (``exact``: of another length, for benchmarks that
+    run the whole folder) or older than the depth noise record in camera.yaml."""
+    from ..synthetic import generate_sequence
+
+    if preset not in PRESETS:
+        raise MbavoError(f"unknown blur preset '{preset}' (choose from {', '.join(PRESETS)})")
+    suffix = "" if depth_model == "exact" else f"_{depth_model}"
+    label = preset if scene == "room" else f"{preset}_{scene}"
+    data = pathlib.Path("runs") / f"bench_{label}_{cfg.width}x{cfg.height}_seed{cfg.seed}{suffix}"
+    seq = open_sequence(data) if (data / "exposure.txt").is_file() else None
+    if seq is None or len(seq) < frames or (exact and len(seq) != frames) or "depth_sigma" not in seq.meta:
+        synth = SynthConfig(**{**PRESETS[preset], "frames": frames, "width": cfg.width, "height": cfg.height, "seed": cfg.seed,
+                               "depth_model": depth_model, "scene": scene})
+        generate_sequence(synth, data, progress=not quiet)
+    return data
+
+
+def with_hidden_exposure(seqs: dict, names: str) -> dict:
+    """``seqs`` plus, for each of ``names`` (or 'all'), ``<name>_noexp``: the same images with the
+    exposure metadata removed (``synthetic.exposure_hidden_copy``, next to the data)."""
+    from ..synthetic import exposure_hidden_copy
+
+    chosen = list(seqs) if names.strip() == "all" else [n for n in names.split(",") if n]
+    unknown = [n for n in chosen if n not in seqs]
+    if unknown:
+        raise MbavoError(f"bench.hide_exposure: no sequence named {', '.join(unknown)} (have {', '.join(seqs)})")
+    out = {}
+    for name, path in seqs.items():
+        out[name] = path
+        if name in chosen:
+            path = pathlib.Path(path)
+            out[f"{name}_noexp"] = exposure_hidden_copy(path, path.parent / f"{path.name}_noexp")
+    return out
+
+
+def real_clip(value: str) -> pathlib.Path:
+    """The real clip a ``--tum`` / ``--kitti`` value names: the path as given when it exists, else the
+    folder of that name in the shared data folder (``synthetic.scene.default_shared_data``), so that
+    the defaults (``../shared/data/...``) work from any working folder."""
+    from ..synthetic.scene import default_shared_data
+
+    path = pathlib.Path(value).expanduser()
+    shared = default_shared_data()
+    if path.exists() or shared is None or not (shared / path.name).is_dir():
+        return path  # missing: the loader says so in one line
+    return shared / path.name
+
+
+def tum_blurred(cfg: BenchConfig, quiet: bool = False) -> pathlib.Path:
+    """``runs/bench_tum_blurred``: the TUM clip ``cfg.tum`` blurred by ``mbavo synth --from`` (20 px), made once."""
+    from ..synthetic import blur_real_sequence
+
+    out = pathlib.Path("runs") / "bench_tum_blurred"
+    if not (out / "exposure.txt").is_file():
+        blur_real_sequence(open_sequence(real_clip(cfg.tum)), out, blur_px=20.0, progress=not quiet)
+    return out

@@ -150,3 +150,27 @@ def mbavo(capsys):
         return CliResult(rc, out.out, out.err)
 
     return run
+
+
+# ``python -c BLOCK_AT_FRAME NAME FLAG AFTER ARGS...``: ``mbavo ARGS`` in a fresh interpreter whose
+# image reader, asked for rgb/NAME (any rgb image: ``*``) once the file AFTER exists (``-``: at once),
+# touches FLAG and then blocks forever; so a run always stops inside the sequence, after every frame
+# before NAME is finished, however fast the machine is.
+BLOCK_AT_FRAME = """
+import pathlib, sys, time
+import cv2
+name, flag, after = sys.argv[1], pathlib.Path(sys.argv[2]), sys.argv[3]
+real_imread = cv2.imread
+
+def imread(path, *args, **kwargs):
+    p = pathlib.Path(str(path))
+    if p.parent.name == "rgb" and name in ("*", p.name) and (after == "-" or pathlib.Path(after).exists()):
+        flag.touch()
+        while True:
+            time.sleep(1)
+    return real_imread(path, *args, **kwargs)
+
+cv2.imread = imread
+from mbavo_jax.cli import main
+sys.exit(main(sys.argv[4:]))
+"""

@@ -268,7 +268,7 @@ def test_a_frame_predicted_mildly_blurred_is_tracked_with_adaptive_n_and_a_sharp
 
     def chosen(blur_px, settings=(), informed=True, readout=0.0):
         monkeypatch.setattr(rgbd, "predicted_blur_px", lambda keyframe, traj: blur_px)
-        tracker = RGBDPipeline(camera, load_config(None, list(settings))).frame_tracker(state, frame, init, informed, readout)
+        tracker, _ = RGBDPipeline(camera, load_config(None, list(settings))).frame_tracker(state, frame, init, informed, readout)
         return "one pose" if not tracker.blur_aware else tracker.n_mode
 
     below, sharp = OdometryConfig().adaptive_below_px, OdometryConfig().sharp_blur_px

@@ -14,7 +14,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "mbavo_jax"
 # the package's own). A module sits in the layer of the longest name that is it or a package above it,
 # and may import modules of its own layer (without a circle) or of a lower one, never of a higher one.
 LAYERS = (
-    ("errors", "progress", "names", "jaxenv"),  # error types, progress bar, safe folder names, JAX environment check
+    ("errors", "progress", "names", "jaxenv", "lock"),  # error types, progress bar, safe folder names, JAX environment check, run-folder lock
     ("geometry",),  # quaternions, poses, the camera, exposure paths
     ("image", "masked", "blur"),  # images and the blur model
     ("io",),  # file readers and writers (the camera files build a geometry.camera)

@@ -25,6 +25,8 @@ from mbavo_jax.odometry import run_odometry
 from mbavo_jax.synthetic import PRESETS, SynthConfig, generate_sequence
 from mbavo_jax.tracking import Status
 
+from .conftest import BLOCK_AT_FRAME
+
 SMALL_SET = ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]"]
 SMALL = [arg for item in SMALL_SET for arg in ("--set", item)]
 DROPPED = {s.name.lower() for s in Status if not s.ok}  # frames.csv statuses of frames without a pose
@@ -80,29 +82,6 @@ def test_track_with_depth_term_reads_the_noise_model(seq_dir, tmp_path, mbavo):
     assert cfg.depth_weight == 0.01 and cfg.depth_sigma == (0.0005, 0.0)
 
 
-# ``python -c BLOCK_AT_FRAME NAME FLAG ARGS...``: ``mbavo ARGS`` in a fresh interpreter whose image
-# reader, asked for rgb/NAME, touches FLAG and then blocks forever; so a run always stops inside the
-# sequence, after every frame before NAME is finished, however fast the machine is.
-BLOCK_AT_FRAME = """
-import pathlib, sys, time
-import cv2
-name, flag = sys.argv[1], pathlib.Path(sys.argv[2])
-real_imread = cv2.imread
-
-def imread(path, *args, **kwargs):
-    p = pathlib.Path(str(path))
-    if p.parent.name == "rgb" and p.name == name:
-        flag.touch()
-        while True:
-            time.sleep(1)
-    return real_imread(path, *args, **kwargs)
-
-cv2.imread = imread
-from mbavo_jax.cli import main
-sys.exit(main(sys.argv[3:]))
-"""
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
 def test_killed_run_keeps_every_finished_pose_and_resumes(sig, seq_dir, tmp_path, mbavo):
@@ -117,7 +96,7 @@ def test_killed_run_keeps_every_finished_pose_and_resumes(sig, seq_dir, tmp_path
         return len(frames_csv(out)) if (out / "frames.csv").is_file() else 0
 
     with open(log, "w") as err:
-        proc = subprocess.Popen([sys.executable, "-c", BLOCK_AT_FRAME, stop, str(flag), "track", str(seq_dir), "--out", str(out), "-q", *SMALL],
+        proc = subprocess.Popen([sys.executable, "-c", BLOCK_AT_FRAME, stop, str(flag), "-", "track", str(seq_dir), "--out", str(out), "-q", *SMALL],
                                 stdout=subprocess.DEVNULL, stderr=err)
         try:
             deadline = time.monotonic() + 300

@@ -21,7 +21,7 @@ from mbavo_jax.config import load_config
 from mbavo_jax.errors import ConfigError
 from mbavo_jax.sweep import parse_sweep
 
-from .conftest import REPO
+from .conftest import BLOCK_AT_FRAME, REPO
 
 SMALL_SET = ["tracker.levels=3", "tracker.points=[192,128,64]", "tracker.cell=[10,7,5]", "tracker.max_steps=[10,12,20]"]
 SMALL = [arg for item in SMALL_SET for arg in ("--set", item)]
@@ -126,7 +126,7 @@ def test_config_files_never_expand_interpolation(tmp_path, secret_home):
 def test_a_second_sweep_into_a_busy_folder_is_refused(tmp_path, mbavo):
     """Two sweeps into one ``--out``: the second would rewrite the first's result.json files while
     its runs go on; it is one line naming the folder and the holder's pid, and writes nothing."""
-    from mbavo_jax.odometry.lock import RunLock
+    from mbavo_jax.lock import RunLock
 
     out = tmp_path / "out"
     out.mkdir()
@@ -179,27 +179,6 @@ def test_sweep_files_never_expand_interpolation(tmp_path, secret_home, mbavo):
 
 # --------------------------------------------------------------------- 4. one writer per folder
 
-# ``python -c BLOCK_AT FLAG RECORD ARGS...``: ``mbavo ARGS`` whose first image read once the file
-# RECORD (the run's run.yaml) exists touches FLAG and blocks forever: the run holds its folder (its
-# records begun) and never finishes.
-BLOCK_AT = """
-import pathlib, sys, time
-import cv2
-flag, record = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2])
-real_imread = cv2.imread
-
-def imread(path, *args, **kwargs):
-    if pathlib.Path(str(path)).parent.name == "rgb" and record.exists():
-        flag.touch()
-        while True:
-            time.sleep(1)
-    return real_imread(path, *args, **kwargs)
-
-cv2.imread = imread
-from mbavo_jax.cli import main
-sys.exit(main(sys.argv[3:]))
-"""
-
 
 def wait_for(what, ok, proc, seconds: float = 120.0) -> None:
     deadline = time.monotonic() + seconds
@@ -213,7 +192,8 @@ def wait_for(what, ok, proc, seconds: float = 120.0) -> None:
 def test_a_second_writer_is_refused_and_a_killed_holder_blocks_nothing(tmp_path, mbavo):
     seq, out, flag = tiny_tum(tmp_path / "seq"), tmp_path / "run", tmp_path / "blocked"
     args = ["track", str(seq), "--out", str(out), "-q", *SMALL]
-    holder = subprocess.Popen([sys.executable, "-c", BLOCK_AT, str(flag), str(out / "run.yaml"), *args],
+    # blocks at the first image read once run.yaml exists: the folder is held, its records begun
+    holder = subprocess.Popen([sys.executable, "-c", BLOCK_AT_FRAME, "*", str(flag), str(out / "run.yaml"), *args],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         wait_for("a run holding its folder", flag.exists, holder)
@@ -236,7 +216,7 @@ def test_an_interrupted_run_gives_its_folder_back(tmp_path):
     process: the next run in the same process may write the folder."""
     from mbavo_jax.datasets import open_sequence
     from mbavo_jax.odometry import run_odometry
-    from mbavo_jax.odometry.lock import RunLock
+    from mbavo_jax.lock import RunLock
 
     def interrupt(*_):
         raise KeyboardInterrupt

@@ -189,25 +189,27 @@ class RGBDPipeline:
             return adaptive_n(tracker)
         return tracker
 
-    def frame_tracker(self, state: RunState, frame, init: ExposureTrajectory, informed: bool, readout: float) -> TrackerConfig:
-        """The tracker's settings for this frame (:meth:`tracker_config`). A global-shutter frame is
-        tracked as sharp (one pose, start = end) when no velocity ``informed`` its guess (a path of
-        zero length is a stationary point of the blur model to first order: from it, start and end
-        barely separate, whatever n). A frame whose guess ``init`` blurs the keyframe's points less
-        than ``odometry.adaptive_below_px`` is tracked with adaptive n (few virtual frames for a little
-        blur), and, with adaptive n, as sharp below ``odometry.sharp_blur_px``."""
-        tracker = self.tracker_config(frame, informed, state)
+    def frame_tracker(self, state: RunState, frame, init: ExposureTrajectory, informed: bool,
+                      readout: float) -> tuple[TrackerConfig, float | None]:
+        """The tracker's settings for this frame (:meth:`tracker_config`), and the blur (px) its guess
+        ``init`` predicts on the keyframe's points when the rule below read it (``track``'s
+        ``blur_px``, so it is computed once; else None). A global-shutter frame is tracked as sharp
+        (one pose, start = end) when no velocity ``informed`` its guess (a path of zero length is a
+        stationary point of the blur model to first order: from it, start and end barely separate,
+        whatever n). A frame predicted under ``odometry.adaptive_below_px`` (0 = never) is tracked
+        with adaptive n (few virtual frames for a little blur), and, with adaptive n, as sharp under
+        ``sharp_blur_px``."""
+        tracker, odo = self.tracker_config(frame, informed, state), self.config.odometry
         if not tracker.blur_aware or readout > 0 or tracker.trajectory != "linear":
-            return tracker
+            return tracker, None
         if not informed:
-            return blind(tracker)
-        odo = self.config.odometry
-        if tracker.n_mode != "adaptive" and odo.adaptive_below_px <= odo.sharp_blur_px:
-            return tracker
+            return blind(tracker), None
+        if tracker.n_mode != "adaptive" and odo.adaptive_below_px <= 0:
+            return tracker, None
         blur = predicted_blur_px(state.keyframe.keyframe, init)
         if tracker.n_mode != "adaptive" and blur >= odo.adaptive_below_px:
-            return tracker
-        return blind(tracker) if blur < odo.sharp_blur_px else adaptive_n(tracker)
+            return tracker, blur
+        return (blind(tracker) if blur < odo.sharp_blur_px else adaptive_n(tracker)), blur
 
     def short_exposure(self, state: RunState, frame) -> bool:
         """Whether the frame's exposure is at most ``odometry.short_exposure`` of the frame interval,
@@ -250,8 +252,8 @@ class RGBDPipeline:
         if frame.depth is None or np.isfinite(frame.depth).any():  # else nothing to place the frame with
             init, informed = self.predict(state, frame)
             rho = self.frame_readout(state, frame)
-            first = track(state.keyframe.keyframe, frame.image, init, self.frame_tracker(state, frame, init, informed, rho),
-                          depth=frame.depth, readout=rho)
+            tracker, blur = self.frame_tracker(state, frame, init, informed, rho)
+            first = track(state.keyframe.keyframe, frame.image, init, tracker, depth=frame.depth, readout=rho, blur_px=blur)
             stats = self.frame_stats(state, first, init.middle() if informed else None) if first.status.ok else None
             result, fit = self.checked(state, frame, first, stats, informed)
             if state.pending is not None and result.status.ok:
@@ -315,7 +317,8 @@ class RGBDPipeline:
         init, _ = self.predict(state, frame, gap=0.0)
         if self.point_stats(kf, init, init.middle(), first.middle()).jump_px < odo.reject_jump_px:
             return None  # the second start would retrace the first
-        second = track(kf, frame.image, init, local(self.frame_tracker(state, frame, init, True, rho)), depth=frame.depth, readout=rho)
+        tracker, blur = self.frame_tracker(state, frame, init, True, rho)
+        second = track(kf, frame.image, init, local(tracker), depth=frame.depth, readout=rho, blur_px=blur)
         if not second.status.ok:
             return None
         apart = self.frame_stats(state, second, result.trajectory.middle_row_path(rho).middle()).jump_px

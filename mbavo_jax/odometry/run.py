@@ -27,7 +27,7 @@ from ..tracking import Keyframe, Status
 from ..tracking.memory import check_memory
 from .exposure import RawFrame, with_next
 from .folder import Checkpoint, check_resume, clear_run, cut_to_checkpoint, read_checkpoint, reconcile, record_run, write_checkpoint
-from .lock import RunLock
+from ..lock import RunLock
 from .outputs import RunOutputs, keyframe_image_path, read_keyframe_image
 from .mono import MonoPipeline
 from .rgbd import RGBDPipeline

@@ -108,7 +108,7 @@ def run_sweep(spec: SweepSpec, out, settings: SweepConfig = SweepConfig(), progr
     are not safe folder names, or an engine that cannot start, are refused before ``out`` is made;
     a second sweep into the same ``out`` while this one runs is refused (the folder's lock)."""
     from ..io import prepare_out_dir
-    from ..odometry.lock import RunLock
+    from ..lock import RunLock
 
     check_names("sweep", spec)
     check_engine(settings)

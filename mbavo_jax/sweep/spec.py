@@ -232,6 +232,7 @@ def parse_sweep(data, where: str = "sweep") -> SweepSpec:
     if not spec.methods:
         raise ConfigError(f"{where}: nothing to run: give configurations: (e.g. ours: {{}}) or peers:")
     check_names(where, spec)
+    refuse_command_line_only(where, data)
     return spec
 
 
@@ -248,6 +249,4 @@ def load_sweep(path) -> SweepSpec:
         data = yaml.safe_load(read_text(p, "sweep file"))
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: not valid YAML ({str(exc).splitlines()[0]})") from None
-    spec = parse_sweep(data, str(p))
-    refuse_command_line_only(str(p), data)
-    return spec
+    return parse_sweep(data, str(p))

@@ -313,7 +313,7 @@ def _frame_image(frame, camera: PinholeCamera) -> np.ndarray:
 
 
 def track(keyframe: Keyframe, frame, init: ExposurePath | None = None, config: TrackerConfig = TrackerConfig(), depth=None,
-          readout: float = 0.0):
+          readout: float = 0.0, blur_px: float | None = None):
     """Estimate the exposure trajectory of ``frame`` (a blurry image, float [0, 1], the keyframe's
     size) relative to ``keyframe``, from ``init`` (e.g. constant velocity; identity when None).
     ``readout``: the frame's readout fraction ρ = R/(R+τ) (``geometry.readout_fraction``; 0 = global
@@ -322,7 +322,8 @@ def track(keyframe: Keyframe, frame, init: ExposurePath | None = None, config: T
     (``geometry.spline``) and the result is a :class:`~mbavo_jax.geometry.SplineTrajectory`.
 
     ``depth``: the frame's own depth map (metres; NaN or 0 = missing), used only when
-    ``config.depth_weight > 0`` (``tracking.geometric``). Returns :class:`TrackResult`
+    ``config.depth_weight > 0`` (``tracking.geometric``). ``blur_px``: :func:`predicted_blur_px` of
+    ``init``'s middle-row path, when the caller has it already. Returns :class:`TrackResult`
     ``(trajectory, status, diagnostics)``; it never raises on bad image data.
     """
     t0 = time.perf_counter()
@@ -338,7 +339,7 @@ def track(keyframe: Keyframe, frame, init: ExposurePath | None = None, config: T
         if np.shape(depth) != image.shape:
             raise ValueError(f"frame depth shape {np.shape(depth)} differs from image shape {image.shape}")
         depth_pyr = _depth_pyramid(depth, config.levels)
-    blur0 = predicted_blur_px(keyframe, init.middle_row_path(readout))
+    blur0 = predicted_blur_px(keyframe, init.middle_row_path(readout)) if blur_px is None else blur_px
     first = _attempt("initial guess", keyframe, pyr, init, config, depth_pyr, blur0, readout)
     best, tried = _search(first, keyframe, pyr, init, config, depth_pyr, readout)
     fine = best.per_level[-1]

@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import pathlib
 
-from ..errors import MbavoError
+from .errors import MbavoError
 
 __all__ = ["PID_FILE", "RunLock"]
 

@@ -433,8 +433,15 @@ class SynthConfig(Settings):
     depth_model: str = setting("exact", "exact z-depth, or as a Kinect-class sensor writes it (noise, holes, dropouts)",
                                choices=tuple(DEPTH_SIGMA))
     scene: str = setting("room", "room: 8x5x9 m, 4 boxes; cluttered: the room with 26 boxes 1.6-5 m away; deep: a 6x4x46 m "
-                         "hall, boxes 2-35 m; distant: every surface 25-80 m away (rotation dominates the blur)",
-                         choices=("room", "cluttered", "deep", "distant"))
+                         "hall, boxes 2-35 m; distant: every surface 25-80 m away (rotation dominates the blur); plane: one textured "
+                         "plane 3 m ahead, its normal turned 30 deg and 10 deg from the view axis (a wall seen obliquely), a far "
+                         "background where a view passes its edge", choices=("room", "cluttered", "deep", "distant", "plane"))
+    texture: str = setting("mixed", "mixed: procedural noise, tiles and blobs (and photos from ../shared/data with real_textures); "
+                           "photo: photo-like dead-leaves textures on every surface (occluding discs of power-law sizes: natural "
+                           "images' 1/f amplitude spectrum and edges)", choices=("mixed", "photo"))
+    blur_px: float = setting(0.0, "target mean blur (px) of the images: exposure_ms is scaled so that the sequence's mean blur is "
+                             "this (the motion kept; measured on 8 frames); the blur reached is reported (mean_blur_px in synth.yaml "
+                             "and mbavo synth's line); 0: exposure_ms as given", NONNEG)
     exposure_info: bool = setting(True, "write the exposure time (camera.yaml exposure_ms, times.txt); false: as TUM/EuRoC/KITTI "
                                         "data come, with the ground-truth exposure paths kept only as groundtruth_exposure.txt")
     readout_ms: float = setting(0.0, "rolling shutter: readout time in ms from the first row's exposure start to the last row's "
@@ -451,6 +458,8 @@ class SynthConfig(Settings):
         if self.exposure_ms > frame_ms:
             problems.append(f"exposure_ms ({self.exposure_ms:g}) must not exceed the frame interval 1000/fps ({frame_ms:.3g} ms): "
                             "a frame's exposure ends before the next one starts")
+        if self.blur_px > 0 and self.subframes == 1:
+            problems.append(f"blur_px ({self.blur_px:g}) needs subframes > 1 to render a blur (e.g. --subframes 64)")
         return problems
 
 
@@ -475,7 +484,9 @@ class BenchConfig(Settings):
 
     frames: int = setting(20, "frame pairs (tracking) or frames per sequence (odometry)", AT_LEAST_1)
     preset: str = setting("strong,none", "tracking: comma-separated blur presets to generate and run")
-    presets: str = setting("none,mild,strong,extreme", "odometry: blur presets")
+    presets: str = setting("none,mild,strong,extreme", "odometry, mono: blur presets, or generated scene sequences by name: "
+                           "<scene>[_photo]_b<px>[_<preset>] (e.g. plane_b10, plane_photo_b20_extreme: the scene, photo-like "
+                           "textures, a mean blur of px pixels by the exposure, the preset's motion, strong unless named)")
     sensor_presets: str = setting("strong,extreme", "odometry: presets generated again with Kinect-class depth ('' to skip)")
     tum: str = setting("../shared/data/tum_fr1_xyz_head37", "odometry, mono: real RGB-D clip to blur ('' to skip; a path that is not "
                                                                "there is looked up by its name in the shared data folder)")
@@ -488,6 +499,9 @@ class BenchConfig(Settings):
     draws: int = setting(1, "mono: runs of each method on each sequence, each at another Huber draw (HUBER_DRAWS, scaled to "
                          "tracker.huber); above 1 the table adds each run's mean ATE over its draws, and the means over seeds use it",
                          AT_LEAST_1)
+    dso: str = setting("", "mono: a dso_dataset binary (DSO built by ../shared/tools/build_dso.sh): adds the method dso, DSO run "
+                       "on each sequence without photometric calibration ('': without DSO)")
+    dso_timeout: float = setting(600.0, "mono: seconds DSO may run on one sequence", POSITIVE)
     out: str = setting("runs/bench_odometry", "odometry: output folder")
     methods: str = setting("", "odometry: comma-separated subset of the methods (default all)")
     depth_weight: float = setting(0.03, "odometry: tracker.depth_weight of the *_depth methods", NONNEG)

@@ -56,7 +56,7 @@ from ..progress import bar
 from .metadata import EXPOSURE_ROWS, GROUNDTRUTH_EXPOSURE
 from .scene import CAMERA_CENTRE, Scene, make_scene, render_exposure, render_rolling_exposure, scene_arrays
 
-__all__ = ["SynthConfig", "PRESETS", "generate_sequence", "blur_real_sequence", "camera_path", "mean_blur_length", "path_bend",
+__all__ = ["SynthConfig", "PRESETS", "generate_sequence", "fit_exposure", "probe_blur", "blur_real_sequence", "camera_path", "mean_blur_length", "path_bend",
            "sampled_rows", "sub_frame_times", "sensor_depth", "depth_scale", "DEPTH_SIGMA", "synth_memory_bytes"]
 
 
@@ -285,12 +285,13 @@ def _render_frame(cfg: SynthConfig, arrays, camera: PinholeCamera, t_mid: float)
 def generate_sequence(cfg: SynthConfig, out, progress: bool = True) -> dict:
     """Render a blurry sequence of ``cfg.scene`` into ``out``; returns the summary written to
     ``synth.yaml``. ``progress``: a progress bar on stderr (when it is a terminal)."""
-    scene = make_scene(cfg.scene, cfg.seed, use_real_textures=cfg.real_textures)
+    scene = make_scene(cfg.scene, cfg.seed, use_real_textures=cfg.real_textures, texture=cfg.texture)
     _check_memory(cfg, len(scene.boxes))
-    out = _prepare_out(out)
     f = 525.0 * cfg.width / 640.0
     camera = PinholeCamera.create(f, f, (cfg.width - 1) / 2, (cfg.height - 1) / 2, cfg.width, cfg.height)
     arrays = scene_arrays(scene)
+    cfg = fit_exposure(cfg, arrays, camera) if cfg.blur_px > 0 else cfg
+    out = _prepare_out(out)
     scale = depth_scale(scene)
     rng = np.random.default_rng(cfg.seed + 1000)
     stamps, frames = [], []
@@ -321,6 +322,37 @@ def generate_sequence(cfg: SynthConfig, out, progress: bool = True) -> dict:
     summary.update(_timing_summary(cfg.exposure_ms, cfg.readout_ms, [f.bend_px for f in frames]))
     summary.update(source=f"synthetic {cfg.scene}", config=dataclasses.asdict(cfg), textures=list(scene.texture_names))
     return _finish(out, summary, t0, cfg.exposure_info)
+
+
+def probe_blur(cfg: SynthConfig, arrays, camera: PinholeCamera, exposure_s: float, probes: int = 8) -> float:
+    """Mean blur (px, :func:`mean_blur_length`) of ``probes`` frames spread over ``cfg``'s
+    sequence at exposure ``exposure_s`` (16 poses of the middle row's exposure; the sharp depth)."""
+    blur = []
+    for t_mid in 1.0 + np.linspace(0, cfg.frames - 1, probes) / cfg.fps:
+        mid = camera_path(t_mid, cfg.speed, cfg.rotation_rate, cfg.seed, cfg.shake_deg, cfg.shake_hz)
+        _, _, depth = render_exposure(arrays, camera, jax.tree_util.tree_map(lambda a: a[None], mid), mid, cfg.response_gamma)
+        poses = _path_poses(t_mid + np.linspace(-0.5, 0.5, 16) * exposure_s, cfg)
+        blur.append(mean_blur_length(np.asarray(depth), camera, poses, mid))
+    return float(np.mean(blur))
+
+
+def fit_exposure(cfg: SynthConfig, arrays, camera: PinholeCamera) -> SynthConfig:
+    """``cfg`` with ``exposure_ms`` such that the mean blur (:func:`probe_blur`) is ``cfg.blur_px``:
+    along the same path the blur grows about in proportion to the exposure, so two proportional
+    steps from ``exposure_ms`` (half the frame interval when 0). ConfigError when the camera does
+    not move or the blur needs an exposure longer than the frame interval (the message gives the
+    blur that is within reach)."""
+    interval, tau = 1.0 / cfg.fps, (cfg.exposure_ms / 1000.0) or 0.5 / cfg.fps
+    for _ in range(2):
+        blur = probe_blur(cfg, arrays, camera, tau)
+        if blur < 1e-3:
+            raise ConfigError(f"blur_px {cfg.blur_px:g}: the camera does not move (speed and rotation_rate 0?), so nothing blurs")
+        if tau * cfg.blur_px / blur > interval:
+            raise ConfigError(f"blur_px {cfg.blur_px:g}: needs an exposure of about {1000 * tau * cfg.blur_px / blur:.0f} ms, longer than "
+                              f"the frame interval ({1000 * interval:.1f} ms); about {blur * interval / tau:.1f} px is within reach at "
+                              "this speed, rotation_rate and image size")
+        tau = tau * cfg.blur_px / blur
+    return dataclasses.replace(cfg, exposure_ms=1000.0 * tau)
 
 
 def _write_rows(out, stamps, truths: list[_FrameTruth], height: int) -> None:

@@ -449,9 +449,37 @@ class SynthConfig(Settings):
     shake_deg: float = setting(0.0, "handheld shake: amplitude (deg) of a rotation oscillation about the x and y axes added to the "
                                "path, so that an exposure spans a curved path (0 = none)", NONNEG)
     shake_hz: float = setting(12.0, "handheld shake: its frequency (Hz)", POSITIVE)
+    imu: bool = setting(False, "simulate an IMU along the camera path: imu.txt (timestamp gx gy gz ax ay az), camera.yaml's imu "
+                               "block (T_cam_imu, rate, time offset, noise), the true biases in imu_groundtruth.txt")
+    imu_rate_hz: float = setting(200.0, "IMU: sample rate (Hz)", POSITIVE)
+    imu_time_offset_ms: float = setting(0.0, "IMU: clock offset t_imu = t_cam + offset (ms; Kalibr's timeshift_cam_imu)", FINITE)
+    imu_extrinsics: str = setting("0.03 -0.01 -0.02 0 0 0.7071068 0.7071068",
+                                  "IMU: T_cam_imu, the IMU in the camera frame, 'tx ty tz qx qy qz qw' (m, unit quaternion)")
+    imu_gyro_noise: float = setting(1.6968e-4, "IMU: gyroscope white noise density (rad/s/sqrt(Hz); EuRoC's ADIS16448)", NONNEG)
+    imu_gyro_walk: float = setting(1.9393e-5, "IMU: gyroscope bias random walk (rad/s^2/sqrt(Hz))", NONNEG)
+    imu_accel_noise: float = setting(2.0e-3, "IMU: accelerometer white noise density (m/s^2/sqrt(Hz))", NONNEG)
+    imu_accel_walk: float = setting(3.0e-3, "IMU: accelerometer bias random walk (m/s^3/sqrt(Hz))", NONNEG)
+    imu_gyro_bias: float = setting(0.005, "IMU: std (rad/s, per axis) of the gyroscope's initial bias", NONNEG)
+    imu_accel_bias: float = setting(0.05, "IMU: std (m/s^2, per axis) of the accelerometer's initial bias", NONNEG)
+
+    def imu_pose(self) -> list[float]:
+        """``imu_extrinsics`` as 7 numbers [tx, ty, tz, qx, qy, qz, qw], the quaternion normalised;
+        ConfigError when it is not 7 finite numbers with a quaternion of norm 1 (within 1e-3)."""
+        try:
+            v = [float(x) for x in self.imu_extrinsics.replace(",", " ").split()]
+        except ValueError:
+            v = []
+        norm = math.sqrt(sum(x * x for x in v[3:])) if len(v) == 7 and all(map(math.isfinite, v)) else 0.0
+        if abs(norm - 1.0) > 1e-3:
+            raise ConfigError(f"imu_extrinsics: expected 'tx ty tz qx qy qz qw' with a unit quaternion, got {self.imu_extrinsics!r}")
+        return v[:3] + [x / norm for x in v[3:]]
 
     def relations(self) -> list[str]:
         frame_ms, problems = 1000.0 / self.fps, []
+        try:
+            self.imu_pose()
+        except ConfigError as exc:
+            problems.append(str(exc))
         if self.readout_ms > frame_ms:
             problems.append(f"readout_ms ({self.readout_ms:g}) must not exceed the frame interval 1000/fps ({frame_ms:.3g} ms): "
                             "the sensor reads one frame at a time")

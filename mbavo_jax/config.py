@@ -518,12 +518,18 @@ class BenchConfig(Settings):
     sensor_presets: str = setting("strong,extreme", "odometry: presets generated again with Kinect-class depth ('' to skip)")
     tum: str = setting("../shared/data/tum_fr1_xyz_head37", "odometry, mono: real RGB-D clip to blur ('' to skip; a path that is not "
                                                                "there is looked up by its name in the shared data folder)")
+    tum_blur_px: str = setting("20", "odometry: mean blur (px) of the blurred TUM clip, comma-separated; one row "
+                               "tum_blurred<px> each")
     kitti: str = setting("../shared/data/kitti07_head160", "mono: real monocular clip ('' to skip; looked up like --tum)")
     width: int = setting(640, "image width of generated sequences", at_least(16))
     height: int = setting(480, "image height of generated sequences", at_least(16))
     seed: int = setting(0, "seed of generated sequences", NONNEG)
-    seeds: str = setting("", "mono: more seeds of the generated presets, comma-separated (rows <preset>_s<seed>_noexp); the "
-                         "output adds each method's mean ATE over all seeds and its ratio to mono_n1 ('': none)")
+    seeds: str = setting("", "mono, odometry: more seeds of the generated presets, comma-separated ('': none). mono: rows "
+                         "<preset>_s<seed>_noexp, and the output adds each method's mean ATE over all seeds and its ratio to "
+                         "mono_n1; odometry: rows named as with sizes")
+    sizes: str = setting("", "odometry: more image sizes of the generated sequences, comma-separated WxH (e.g. 320x240,640x480); "
+                         "with more than one size or seed in a run every generated row is named <name>_<w>x<h>_s<seed> "
+                         "('': width x height only)")
     draws: int = setting(1, "mono: runs of each method on each sequence, each at another Huber draw (HUBER_DRAWS, scaled to "
                          "tracker.huber); above 1 the table adds each run's mean ATE over its draws, and the means over seeds use it",
                          AT_LEAST_1)
@@ -551,11 +557,41 @@ class BenchConfig(Settings):
     def relations(self) -> list[str]:
         bad = [s for s in self.seeds.split(",") if s.strip() and not s.strip().isdigit()]
         out = [f"seeds: not a non-negative integer: {', '.join(bad)}"] if bad else []
+        sizes = [s for s in self.sizes.split(",") if s.strip() and _size(s) is None]
+        out += [f"sizes: not WxH with both at least 16: {', '.join(sizes)}"] if sizes else []
+        blurs = [b for b in self.tum_blur_px.split(",") if b.strip() and _blur(b) is None]
+        out += [f"tum_blur_px: not a number > 0: {', '.join(blurs)}"] if blurs else []
         return out + ([f"draws: at most {len(HUBER_DRAWS)}"] if self.draws > len(HUBER_DRAWS) else [])
 
     def seed_list(self) -> list[int]:
         """``seed`` and then the other ``seeds``, each once."""
         return list(dict.fromkeys([self.seed, *(int(s) for s in self.seeds.split(",") if s.strip())]))
+
+    def size_list(self) -> list[tuple[int, int]]:
+        """(width, height) and then the other ``sizes``, each once."""
+        return list(dict.fromkeys([(self.width, self.height), *(_size(s) for s in self.sizes.split(",") if s.strip())]))
+
+    def tum_blur_list(self) -> list[float]:
+        """The blur amounts (px) of the blurred TUM clip's rows, each once."""
+        return list(dict.fromkeys(_blur(b) for b in self.tum_blur_px.split(",") if b.strip()))
+
+
+def _size(text: str) -> tuple[int, int] | None:
+    """'640x480' as (640, 480); None unless two integers of at least 16."""
+    parts = text.strip().lower().split("x")
+    if len(parts) != 2 or not all(p.isdigit() for p in parts):
+        return None
+    w, h = int(parts[0]), int(parts[1])
+    return (w, h) if min(w, h) >= 16 else None
+
+
+def _blur(text: str) -> float | None:
+    """A blur amount in px: a finite number > 0, else None."""
+    try:
+        v = float(text)
+    except ValueError:
+        return None
+    return v if math.isfinite(v) and v > 0 else None
 
 
 @dataclasses.dataclass(frozen=True)

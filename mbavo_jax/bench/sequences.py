@@ -4,6 +4,7 @@ clip, and the tracking benchmark's frame pairs."""
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 import re
 
@@ -18,7 +19,8 @@ from ..io import read_image_gray
 from ..synthetic.scene import SCENES
 from ..tracking import constant_velocity_guess
 
-__all__ = ["bench_data", "scene_settings", "SCENE_FORM", "with_hidden_exposure", "real_clip", "tum_blurred", "tracking_pairs"]
+__all__ = ["bench_data", "scene_settings", "SCENE_FORM", "with_hidden_exposure", "real_clip", "tum_blurred", "tracking_pairs",
+           "Generated", "generated_sequences", "make_generated"]
 
 
 def _P(v):
@@ -121,11 +123,45 @@ def real_clip(value: str) -> pathlib.Path:
     return shared / path.name
 
 
-def tum_blurred(cfg: BenchConfig, quiet: bool = False) -> pathlib.Path:
-    """``runs/bench_tum_blurred``: the TUM clip ``cfg.tum`` blurred by ``mbavo synth --from`` (20 px), made once."""
+def tum_blurred(cfg: BenchConfig, quiet: bool = False, blur_px: float = 20.0) -> pathlib.Path:
+    """``runs/bench_tum_blurred<px>``: the TUM clip ``cfg.tum`` blurred by ``mbavo synth --from`` by
+    ``blur_px`` (mean over frames), made once."""
     from ..synthetic import blur_real_sequence
 
-    out = pathlib.Path("runs") / "bench_tum_blurred"
+    out = pathlib.Path("runs") / f"bench_tum_blurred{blur_px:g}"
     if not (out / "exposure.txt").is_file():
-        blur_real_sequence(open_sequence(real_clip(cfg.tum)), out, blur_px=20.0, progress=not quiet)
+        blur_real_sequence(open_sequence(real_clip(cfg.tum)), out, blur_px=blur_px, progress=not quiet)
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Generated:
+    """One generated sequence of a benchmark (``bench_data``'s arguments)."""
+
+    preset: str
+    seed: int
+    width: int
+    height: int
+    depth_model: str = "exact"
+    scene: str = "room"
+
+
+def generated_sequences(cfg: BenchConfig) -> dict[str, Generated]:
+    """The odometry benchmark's generated sequences by table name: ``cfg.presets``, then
+    ``cfg.sensor_presets`` (``<preset>_sensor``), then ``cfg.scenes`` x ``cfg.scene_presets``
+    (``<preset>_<scene>``), each at every size (``cfg.size_list``) and seed (``cfg.seed_list``).
+    With one size and one seed a name is just that; with more, each name ends ``_<w>x<h>_s<seed>``."""
+    split = lambda text: [x for x in text.split(",") if x]
+    kinds = [(p, "exact", "room", p) for p in split(cfg.presets)]
+    kinds += [(p, "sensor", "room", f"{p}_sensor") for p in split(cfg.sensor_presets)]
+    kinds += [(p, "exact", s, f"{p}_{s}") for s in split(cfg.scenes) for p in split(cfg.scene_presets)]
+    sizes, seeds = cfg.size_list(), cfg.seed_list()
+    tagged = len(sizes) > 1 or len(seeds) > 1
+    return {label + (f"_{w}x{h}_s{s}" if tagged else ""): Generated(p, s, w, h, depth_model, scene)
+            for p, depth_model, scene, label in kinds for w, h in sizes for s in seeds}
+
+
+def make_generated(g: Generated, cfg: BenchConfig, quiet: bool = False) -> pathlib.Path:
+    """The folder of ``g`` (:func:`bench_data`, exactly ``cfg.frames`` long)."""
+    at = dataclasses.replace(cfg, seed=g.seed, width=g.width, height=g.height)
+    return bench_data(g.preset, at, cfg.frames, quiet, depth_model=g.depth_model, scene=g.scene, exact=True)

@@ -350,12 +350,28 @@ class MonoConfig(Settings):
     ready_interval: float = setting(1.0, "a candidate joins the window once its inverse-depth interval is at most this fraction of its midpoint", POSITIVE)
     # --- initialisation (mono.init)
     init_min_parallax_deg: float = setting(0.5, "initialise once the median parallax angle of the tracked points exceeds this", POSITIVE)
-    init_min_tracks: int = setting(80, "fewer tracked corners than this: too little texture to initialise", at_least(8))
+    init_min_tracks: int = setting(80, "fewer tracked corners (direct start: converged points) than this: too little texture to initialise", at_least(8))
     init_max_frames: int = setting(60, "start initialising again from a later frame after this many frames without success", AT_LEAST_1)
     init_corners: int = setting(1000, "at most this many corners tracked from the reference frame (spread over the image)", at_least(8))
     init_corner_contrast: float = setting(8.0 / 255.0, "a corner needs about this step contrast on [0, 1] intensities (above noise)", POSITIVE)
     init_ransac_px: float = setting(2.0, "essential-matrix RANSAC: largest distance (px) of an inlier from its epipolar line", POSITIVE)
     init_min_inlier_ratio: float = setting(0.6, "fewer essential-matrix inliers than this fraction of the tracks: geometry failed", FRACTION)
+    initialiser: str = setting("corners", "how the monocular system starts: corners (KLT tracks, the essential matrix; mono.init) or direct "
+                               "(DSO's coarse initialiser, blur-aware: pose, brightness and inverse depths aligned photometrically; "
+                               "mono.direct_init)", choices=("corners", "direct"))
+    init_direct_points: int = setting(1000, "direct start: gradient-selected points of the reference frame (fixed count, padded)", at_least(8))
+    init_direct_blur_samples: int = setting(8, "direct start: virtual frames of the blur model along the current frame's exposure path "
+                                            "(1: DSO's residual, blind to blur)", AT_LEAST_1)
+    init_direct_exposure: float = setting(0.5, "direct start: the exposure as a fraction of the frame interval (the blur model's path is "
+                                          "this much of the constant-velocity motion between frames)", FRACTION)
+    init_direct_snap: float = setting(2.5 / 150.0, "direct start: the prior pulling inverse depths to 1 and the translation to 0 lets go "
+                                      "once sqrt(|t|² + mean (d − 1)²) exceeds this (the translation relative to the depth; DSO's "
+                                      "2.5/150)", POSITIVE)
+    init_direct_frames: int = setting(5, "direct start: the system starts this many frames after the prior let go (DSO's 5)", NONNEG)
+    init_direct_min_fit: float = setting(0.5, "direct start: fewer of the points in view fitting (pattern RMS under ba_outlier) than this fraction: the "
+                                         "alignment diverged, start again from a later frame", FRACTION)
+    init_direct_max_depth_std: float = setting(0.5, "direct start: a point joins the window only if its inverse depth is known within "
+                                               "this fraction of itself (for 9/255 of photometric noise)", POSITIVE)
     # --- keyframes and restarts (odometry.mono, mono.keyframes)
     keyframe_shift: float = setting(0.5, "weight of DSO's point-shift keyframe rule (1 = DSO's weights, 0 = off): a new keyframe also when the weighted RMS point shift, relative to width + height, exceeds 1", NONNEG)
     ba_max_move: float = setting(0.02, "a bundle adjustment that moves the new keyframe's view of the window's points by more than this fraction of the image width (median) is run again without the points it dropped (undone if it moves that far again)", POSITIVE)

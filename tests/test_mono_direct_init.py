@@ -187,3 +187,15 @@ def test_jacobian_matches_finite_differences(linearised_problem, samples):
         assert np.median(np.abs(fd[m] - J)) < 0.1 * np.median(np.abs(fd[m])), k
         if k != 7:  # b's column is the constant -1
             assert np.corrcoef(fd[m], J)[0, 1] > 0.95, k
+
+
+def test_the_mono_bench_runs_the_direct_initialiser_as_its_own_methods():
+    """``mono_direct_*`` are the monocular methods started by the direct initialiser, the others by corners."""
+    from mbavo_jax.bench.mono import mono_configs
+    from mbavo_jax.config import TrackerConfig
+
+    configs = mono_configs(TrackerConfig())
+    assert {m: c.mono.initialiser for m, c in configs.items() if m.startswith("mono")} == {
+        "mono_n64": "corners", "mono_adaptive": "corners", "mono_n1": "corners", "mono_direct_n64": "direct", "mono_direct_n1": "direct"}
+    assert configs["mono_direct_n64"].tracker.blur_aware and not configs["mono_direct_n1"].tracker.blur_aware
+    assert configs["mono_direct_n1"].odometry.mode == "mono"

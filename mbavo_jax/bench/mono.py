@@ -36,16 +36,18 @@ from .dso import check_dso_binary, dso_restarts, run_dso
 __all__ = ["MONO_METHODS", "mono_configs", "draw_huber", "run_draws", "run_mono_benchmark", "format_mono_table", "format_seed_table",
            "main_mono", "seed_groups", "seed_means", "trajectory_scores", "posing", "ate_both_posed", "DSO_METHOD"]
 
-MONO_METHODS = ("mono_n64", "mono_adaptive", "mono_n1", "rgbd_n64")
+MONO_METHODS = ("mono_n64", "mono_adaptive", "mono_n1", "mono_direct_n64", "mono_direct_n1", "rgbd_n64")
 DSO_METHOD = "dso"  # the peer, run when --dso names its binary
 RESTART_NOTE = "initialising again"  # frames.csv note of a monocular run that lost track and starts afresh (odometry/mono.py)
 
 
 def mono_configs(base: TrackerConfig, methods=MONO_METHODS) -> dict[str, RunConfig]:
-    """The run settings of each method (``rgbd_*``: the RGB-D loop, for reference)."""
-    mono = lambda t: RunConfig(tracker=t).replace(odometry=dict(mode="mono"))
+    """The run settings of each method (``mono_direct_*``: started by the direct initialiser,
+    ``mono.initialiser = direct``; ``rgbd_*``: the RGB-D loop, for reference)."""
+    mono = lambda t, init="corners": RunConfig(tracker=t).replace(odometry=dict(mode="mono"), mono=dict(initialiser=init))
+    blind = dataclasses.replace(base, blur_aware=False)
     configs = {"mono_n64": mono(base), "mono_adaptive": mono(dataclasses.replace(base, n_mode="adaptive")),
-               "mono_n1": mono(dataclasses.replace(base, blur_aware=False)),
+               "mono_n1": mono(blind), "mono_direct_n64": mono(base, "direct"), "mono_direct_n1": mono(blind, "direct"),
                "rgbd_n64": RunConfig(tracker=base).replace(odometry=dict(mode="rgbd"))}
     return {m: c for m, c in configs.items() if m in methods}
 

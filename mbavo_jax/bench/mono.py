@@ -238,7 +238,8 @@ def _cell(r: dict) -> str:
     if "error" in r:
         return f"error: {r['error']}"
     if "ate_rmse_m" not in r:
-        return f"lost ({r.get('dropped', r['frames'] - r.get('posed', 0))} dropped, {r.get('initialising', '?')} initialising)"
+        dropped = r["dropped"] if "dropped" in r else r["frames"] - r.get("posed", 0) if "frames" in r else "?"  # DSO: frames not posed
+        return f"lost ({dropped} dropped, {r.get('initialising', '?')} initialising)"
     scores = f"{r['ate_rmse_m']:.4f} m ({r['ate_pct']:.2f} %) | drift {r['drift_trans_pct']:.1f} % / scale {r['drift_scale_pct']:.1f} % | "
     if "track_s_per_frame" not in r:  # DSO
         return scores + f"{r['frames'] - r['posed']} of {r['frames']} | {r['seconds_per_frame']:.2f} s/f (the whole DSO process)"

@@ -62,7 +62,7 @@ def scene_settings(name: str) -> dict | None:
     return {**PRESETS[motion], **sharp, "scene": scene, "texture": "photo" if match["photo"] else "mixed"}
 
 
-def _synth_settings(preset: str, depth_model: str, scene: str) -> dict:
+def _synth_settings(preset: str, scene: str) -> dict:
     """A blur preset's settings in ``scene``, or a named scene sequence's (:func:`scene_settings`)."""
     if preset in PRESETS:
         return {**PRESETS[preset], "scene": scene}
@@ -80,7 +80,7 @@ def bench_data(preset: str, cfg: BenchConfig, frames: int, quiet: bool = False, 
     run the whole folder) or older than the depth noise record in camera.yaml."""
     from ..synthetic import generate_sequence
 
-    settings = _synth_settings(preset, depth_model, scene)
+    settings = _synth_settings(preset, scene)
     suffix = "" if depth_model == "exact" else f"_{depth_model}"
     label = preset if scene == "room" else f"{preset}_{scene}"
     data = pathlib.Path("runs") / f"bench_{label}_{cfg.width}x{cfg.height}_seed{cfg.seed}{suffix}"

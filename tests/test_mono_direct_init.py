@@ -127,6 +127,7 @@ def test_a_plane_at_an_angle_gives_pose_and_depths_up_to_scale():
 # ------------------------------------------------------------------------------- refusals
 
 
+@pytest.mark.slow
 def test_a_frame_unlike_the_reference_diverges_with_a_reason():
     rng = np.random.default_rng(0)
     frames = plane_frames(1, 1)

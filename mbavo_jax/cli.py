@@ -476,8 +476,9 @@ def _add_synth(sub) -> None:
     p.add_argument("--preset", choices=list(PRESETS), default="strong",
                    help="blur level: mean blur ~0 / 5 / 20 / 40 px at 640x480 (default strong)")
     p.add_argument("--from", dest="source", metavar="SEQ", help="blur a real RGB-D sequence (with depth) instead of rendering")
-    p.add_argument("--blur-px", type=float, help="with --from: mean blur length in pixels (default from --preset)")
-    add_arguments(p, SynthConfig)
+    p.add_argument("--blur-px", type=nonneg_float, help="mean blur length in pixels: of the generated images (exposure_ms is "
+                   "scaled to reach it, the motion kept; 0: exposure_ms as given), or with --from of the blurred clip (default from --preset)")
+    add_arguments(p, SynthConfig, skip=("blur_px",))
     _quiet_flag(p)
     p.set_defaults(func=_cmd_synth)
 

@@ -350,12 +350,28 @@ class MonoConfig(Settings):
     ready_interval: float = setting(1.0, "a candidate joins the window once its inverse-depth interval is at most this fraction of its midpoint", POSITIVE)
     # --- initialisation (mono.init)
     init_min_parallax_deg: float = setting(0.5, "initialise once the median parallax angle of the tracked points exceeds this", POSITIVE)
-    init_min_tracks: int = setting(80, "fewer tracked corners than this: too little texture to initialise", at_least(8))
+    init_min_tracks: int = setting(80, "fewer tracked corners (direct start: converged points) than this: too little texture to initialise", at_least(8))
     init_max_frames: int = setting(60, "start initialising again from a later frame after this many frames without success", AT_LEAST_1)
     init_corners: int = setting(1000, "at most this many corners tracked from the reference frame (spread over the image)", at_least(8))
     init_corner_contrast: float = setting(8.0 / 255.0, "a corner needs about this step contrast on [0, 1] intensities (above noise)", POSITIVE)
     init_ransac_px: float = setting(2.0, "essential-matrix RANSAC: largest distance (px) of an inlier from its epipolar line", POSITIVE)
     init_min_inlier_ratio: float = setting(0.6, "fewer essential-matrix inliers than this fraction of the tracks: geometry failed", FRACTION)
+    initialiser: str = setting("corners", "how the monocular system starts: corners (KLT tracks, the essential matrix; mono.init) or direct "
+                               "(DSO's coarse initialiser, blur-aware: pose, brightness and inverse depths aligned photometrically; "
+                               "mono.direct_init)", choices=("corners", "direct"))
+    init_direct_points: int = setting(1000, "direct start: gradient-selected points of the reference frame (fixed count, padded)", at_least(8))
+    init_direct_blur_samples: int = setting(8, "direct start: virtual frames of the blur model along the current frame's exposure path "
+                                            "(1: DSO's residual, blind to blur)", AT_LEAST_1)
+    init_direct_exposure: float = setting(0.5, "direct start: the exposure as a fraction of the frame interval (the blur model's path is "
+                                          "this much of the constant-velocity motion between frames)", FRACTION)
+    init_direct_snap: float = setting(2.5 / 150.0, "direct start: the prior pulling inverse depths to 1 and the translation to 0 lets go "
+                                      "once sqrt(|t|² + mean (d − 1)²) exceeds this (the translation relative to the depth; DSO's "
+                                      "2.5/150)", POSITIVE)
+    init_direct_frames: int = setting(5, "direct start: the system starts this many frames after the prior let go (DSO's 5)", NONNEG)
+    init_direct_min_fit: float = setting(0.5, "direct start: fewer of the points in view fitting (pattern RMS under ba_outlier) than this fraction: the "
+                                         "alignment diverged, start again from a later frame", FRACTION)
+    init_direct_max_depth_std: float = setting(0.5, "direct start: a point joins the window only if its inverse depth is known within "
+                                               "this fraction of itself (for 9/255 of photometric noise)", POSITIVE)
     # --- keyframes and restarts (odometry.mono, mono.keyframes)
     keyframe_shift: float = setting(0.5, "weight of DSO's point-shift keyframe rule (1 = DSO's weights, 0 = off): a new keyframe also when the weighted RMS point shift, relative to width + height, exceeds 1", NONNEG)
     ba_max_move: float = setting(0.02, "a bundle adjustment that moves the new keyframe's view of the window's points by more than this fraction of the image width (median) is run again without the points it dropped (undone if it moves that far again)", POSITIVE)
@@ -433,8 +449,15 @@ class SynthConfig(Settings):
     depth_model: str = setting("exact", "exact z-depth, or as a Kinect-class sensor writes it (noise, holes, dropouts)",
                                choices=tuple(DEPTH_SIGMA))
     scene: str = setting("room", "room: 8x5x9 m, 4 boxes; cluttered: the room with 26 boxes 1.6-5 m away; deep: a 6x4x46 m "
-                         "hall, boxes 2-35 m; distant: every surface 25-80 m away (rotation dominates the blur)",
-                         choices=("room", "cluttered", "deep", "distant"))
+                         "hall, boxes 2-35 m; distant: every surface 25-80 m away (rotation dominates the blur); plane: one textured "
+                         "plane 3 m ahead, its normal turned 30 deg and 10 deg from the view axis (a wall seen obliquely), a far "
+                         "background where a view passes its edge", choices=("room", "cluttered", "deep", "distant", "plane"))
+    texture: str = setting("mixed", "mixed: procedural noise, tiles and blobs (and photos from ../shared/data with real_textures); "
+                           "photo: photo-like dead-leaves textures on every surface (occluding discs of power-law sizes: natural "
+                           "images' 1/f amplitude spectrum and edges)", choices=("mixed", "photo"))
+    blur_px: float = setting(0.0, "target mean blur (px) of the images: exposure_ms is scaled so that the sequence's mean blur is "
+                             "this (the motion kept; measured on 8 frames); the blur reached is reported (mean_blur_px in synth.yaml "
+                             "and mbavo synth's line); 0: exposure_ms as given", NONNEG)
     exposure_info: bool = setting(True, "write the exposure time (camera.yaml exposure_ms, times.txt); false: as TUM/EuRoC/KITTI "
                                         "data come, with the ground-truth exposure paths kept only as groundtruth_exposure.txt")
     readout_ms: float = setting(0.0, "rolling shutter: readout time in ms from the first row's exposure start to the last row's "
@@ -442,15 +465,45 @@ class SynthConfig(Settings):
     shake_deg: float = setting(0.0, "handheld shake: amplitude (deg) of a rotation oscillation about the x and y axes added to the "
                                "path, so that an exposure spans a curved path (0 = none)", NONNEG)
     shake_hz: float = setting(12.0, "handheld shake: its frequency (Hz)", POSITIVE)
+    imu: bool = setting(False, "simulate an IMU along the camera path: imu.txt (timestamp gx gy gz ax ay az), camera.yaml's imu "
+                               "block (T_cam_imu, rate, time offset, noise), the true biases in imu_groundtruth.txt")
+    imu_rate_hz: float = setting(200.0, "IMU: sample rate (Hz)", POSITIVE)
+    imu_time_offset_ms: float = setting(0.0, "IMU: clock offset t_imu = t_cam + offset (ms; Kalibr's timeshift_cam_imu)", FINITE)
+    imu_extrinsics: str = setting("0.03 -0.01 -0.02 0 0 0.7071068 0.7071068",
+                                  "IMU: T_cam_imu, the IMU in the camera frame, 'tx ty tz qx qy qz qw' (m, unit quaternion)")
+    imu_gyro_noise: float = setting(1.6968e-4, "IMU: gyroscope white noise density (rad/s/sqrt(Hz); EuRoC's ADIS16448)", NONNEG)
+    imu_gyro_walk: float = setting(1.9393e-5, "IMU: gyroscope bias random walk (rad/s^2/sqrt(Hz))", NONNEG)
+    imu_accel_noise: float = setting(2.0e-3, "IMU: accelerometer white noise density (m/s^2/sqrt(Hz))", NONNEG)
+    imu_accel_walk: float = setting(3.0e-3, "IMU: accelerometer bias random walk (m/s^3/sqrt(Hz))", NONNEG)
+    imu_gyro_bias: float = setting(0.005, "IMU: std (rad/s, per axis) of the gyroscope's initial bias", NONNEG)
+    imu_accel_bias: float = setting(0.05, "IMU: std (m/s^2, per axis) of the accelerometer's initial bias", NONNEG)
+
+    def imu_pose(self) -> list[float]:
+        """``imu_extrinsics`` as 7 numbers [tx, ty, tz, qx, qy, qz, qw], the quaternion normalised;
+        ConfigError when it is not 7 finite numbers with a quaternion of norm 1 (within 1e-3)."""
+        try:
+            v = [float(x) for x in self.imu_extrinsics.replace(",", " ").split()]
+        except ValueError:
+            v = []
+        norm = math.sqrt(sum(x * x for x in v[3:])) if len(v) == 7 and all(map(math.isfinite, v)) else 0.0
+        if abs(norm - 1.0) > 1e-3:
+            raise ConfigError(f"imu_extrinsics: expected 'tx ty tz qx qy qz qw' with a unit quaternion, got {self.imu_extrinsics!r}")
+        return v[:3] + [x / norm for x in v[3:]]
 
     def relations(self) -> list[str]:
         frame_ms, problems = 1000.0 / self.fps, []
+        try:
+            self.imu_pose()
+        except ConfigError as exc:
+            problems.append(str(exc))
         if self.readout_ms > frame_ms:
             problems.append(f"readout_ms ({self.readout_ms:g}) must not exceed the frame interval 1000/fps ({frame_ms:.3g} ms): "
                             "the sensor reads one frame at a time")
         if self.exposure_ms > frame_ms:
             problems.append(f"exposure_ms ({self.exposure_ms:g}) must not exceed the frame interval 1000/fps ({frame_ms:.3g} ms): "
                             "a frame's exposure ends before the next one starts")
+        if self.blur_px > 0 and self.subframes == 1:
+            problems.append(f"blur_px ({self.blur_px:g}) needs subframes > 1 to render a blur (e.g. --subframes 64)")
         return problems
 
 
@@ -475,19 +528,30 @@ class BenchConfig(Settings):
 
     frames: int = setting(20, "frame pairs (tracking) or frames per sequence (odometry)", AT_LEAST_1)
     preset: str = setting("strong,none", "tracking: comma-separated blur presets to generate and run")
-    presets: str = setting("none,mild,strong,extreme", "odometry: blur presets")
+    presets: str = setting("none,mild,strong,extreme", "odometry, mono: blur presets, or generated scene sequences by name: "
+                           "<scene>[_photo]_b<px>[_<preset>] (e.g. plane_b10, plane_photo_b20_extreme: the scene, photo-like "
+                           "textures, a mean blur of px pixels by the exposure, the preset's motion, strong unless named)")
     sensor_presets: str = setting("strong,extreme", "odometry: presets generated again with Kinect-class depth ('' to skip)")
     tum: str = setting("../shared/data/tum_fr1_xyz_head37", "odometry, mono: real RGB-D clip to blur ('' to skip; a path that is not "
                                                                "there is looked up by its name in the shared data folder)")
+    tum_blur_px: str = setting("20", "odometry: mean blur (px) of the blurred TUM clip, comma-separated; one row "
+                               "tum_blurred<px> each")
     kitti: str = setting("../shared/data/kitti07_head160", "mono: real monocular clip ('' to skip; looked up like --tum)")
     width: int = setting(640, "image width of generated sequences", at_least(16))
     height: int = setting(480, "image height of generated sequences", at_least(16))
     seed: int = setting(0, "seed of generated sequences", NONNEG)
-    seeds: str = setting("", "mono: more seeds of the generated presets, comma-separated (rows <preset>_s<seed>_noexp); the "
-                         "output adds each method's mean ATE over all seeds and its ratio to mono_n1 ('': none)")
+    seeds: str = setting("", "mono, odometry: more seeds of the generated presets, comma-separated ('': none). mono: rows "
+                         "<preset>_s<seed>_noexp, and the output adds each method's mean ATE over all seeds and its ratio to "
+                         "mono_n1; odometry: rows named as with sizes")
+    sizes: str = setting("", "odometry: more image sizes of the generated sequences, comma-separated WxH (e.g. 320x240,640x480); "
+                         "with more than one size or seed in a run every generated row is named <name>_<w>x<h>_s<seed> "
+                         "('': width x height only)")
     draws: int = setting(1, "mono: runs of each method on each sequence, each at another Huber draw (HUBER_DRAWS, scaled to "
                          "tracker.huber); above 1 the table adds each run's mean ATE over its draws, and the means over seeds use it",
                          AT_LEAST_1)
+    dso: str = setting("", "mono: a dso_dataset binary (DSO built by ../shared/tools/build_dso.sh): adds the method dso, DSO run "
+                       "on each sequence without photometric calibration ('': without DSO)")
+    dso_timeout: float = setting(600.0, "mono: seconds DSO may run on one sequence", POSITIVE)
     out: str = setting("runs/bench_odometry", "odometry: output folder")
     methods: str = setting("", "odometry: comma-separated subset of the methods (default all)")
     depth_weight: float = setting(0.03, "odometry: tracker.depth_weight of the *_depth methods", NONNEG)
@@ -509,11 +573,41 @@ class BenchConfig(Settings):
     def relations(self) -> list[str]:
         bad = [s for s in self.seeds.split(",") if s.strip() and not s.strip().isdigit()]
         out = [f"seeds: not a non-negative integer: {', '.join(bad)}"] if bad else []
+        sizes = [s for s in self.sizes.split(",") if s.strip() and _size(s) is None]
+        out += [f"sizes: not WxH with both at least 16: {', '.join(sizes)}"] if sizes else []
+        blurs = [b for b in self.tum_blur_px.split(",") if b.strip() and _blur(b) is None]
+        out += [f"tum_blur_px: not a number > 0: {', '.join(blurs)}"] if blurs else []
         return out + ([f"draws: at most {len(HUBER_DRAWS)}"] if self.draws > len(HUBER_DRAWS) else [])
 
     def seed_list(self) -> list[int]:
         """``seed`` and then the other ``seeds``, each once."""
         return list(dict.fromkeys([self.seed, *(int(s) for s in self.seeds.split(",") if s.strip())]))
+
+    def size_list(self) -> list[tuple[int, int]]:
+        """(width, height) and then the other ``sizes``, each once."""
+        return list(dict.fromkeys([(self.width, self.height), *(_size(s) for s in self.sizes.split(",") if s.strip())]))
+
+    def tum_blur_list(self) -> list[float]:
+        """The blur amounts (px) of the blurred TUM clip's rows, each once."""
+        return list(dict.fromkeys(_blur(b) for b in self.tum_blur_px.split(",") if b.strip()))
+
+
+def _size(text: str) -> tuple[int, int] | None:
+    """'640x480' as (640, 480); None unless two integers of at least 16."""
+    parts = text.strip().lower().split("x")
+    if len(parts) != 2 or not all(p.isdigit() for p in parts):
+        return None
+    w, h = int(parts[0]), int(parts[1])
+    return (w, h) if min(w, h) >= 16 else None
+
+
+def _blur(text: str) -> float | None:
+    """A blur amount in px: a finite number > 0, else None."""
+    try:
+        v = float(text)
+    except ValueError:
+        return None
+    return v if math.isfinite(v) and v > 0 else None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -185,8 +185,8 @@ CASES = [
     ]],
     *[Case(f"synth_from_{flag[2:]}_{value}", ("synth", "--from", "{seq}", "--out", "{tmp}/out", "-q", flag, value), expect)
       for flag, value, expect in [
-        ("--blur-px", "-5", "blur_px: must be >= 0"),
-        ("--blur-px", "nan", "blur_px: must be >= 0, got nan"),
+        ("--blur-px", "-5", "--blur-px: must be a finite number >= 0, got -5"),
+        ("--blur-px", "nan", "--blur-px: must be a finite number >= 0, got nan"),
         ("--subframes", "0", "subframes: must be >= 1"),
         ("--noise", "nan", "noise: must be >= 0, got nan"),
         ("--seed", "-1", "seed: must be >= 0"),

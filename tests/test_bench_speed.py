@@ -45,6 +45,7 @@ def test_profile_splits_a_run_into_its_parts(tmp_path):
     assert (tmp_path / "run" / "trajectory.txt").is_file()
 
 
+@pytest.mark.slow
 def test_timed_runs_alternate_after_a_warm_up(tmp_path):
     seq_dir = tmp_path / "seq"
     assert run_cli("synth", "--out", str(seq_dir), "--preset", "none", "--frames", "3", "--width", "96", "--height", "72", "-q") == 0

@@ -36,6 +36,7 @@ def _pixels(cam, margin=20):
     return jnp.asarray(np.stack([u.ravel(), v.ravel()], -1), jnp.float32)
 
 
+@pytest.mark.slow
 def test_start_equal_end_reproduces_sharp_warp(scene):
     img, cam, depth, traj = scene
     still = ExposureTrajectory(traj.start, traj.start)
@@ -56,6 +57,7 @@ def test_start_equal_end_reproduces_sharp_warp(scene):
     np.testing.assert_allclose(same, img[px[:, 1].astype(int), px[:, 0].astype(int)], atol=1e-5)
 
 
+@pytest.mark.slow
 def test_converges_with_n(scene):
     img, cam, _, traj = scene
     px = _pixels(cam)
@@ -95,6 +97,7 @@ def test_invalid_samples_are_masked(scene):
     assert np.all(np.isfinite(dense)) and not bool(valid[15, 15])
 
 
+@pytest.mark.slow
 def test_gradient_wrt_trajectory_is_finite_and_nonzero(scene):
     img, cam, _, traj = scene
     px = _pixels(cam)
@@ -108,6 +111,7 @@ def test_gradient_wrt_trajectory_is_finite_and_nonzero(scene):
     assert np.all(np.isfinite(g)) and float(jnp.linalg.norm(g)) > 0
 
 
+@pytest.mark.slow
 def test_tracker_residuals_use_the_one_blur_model(scene):
     """The tracker's synthesised intensities (its residuals plus the observed pixels, without the
     affine brightness) equal ``reblur`` at the same trajectory: one image-formation model, float64."""
@@ -130,6 +134,7 @@ def test_tracker_residuals_use_the_one_blur_model(scene):
         np.testing.assert_allclose(np.asarray(tracker_synth)[np.asarray(valid)], np.asarray(model)[np.asarray(valid)], rtol=0, atol=1e-10)
 
 
+@pytest.mark.slow
 def test_blur_segments_point_along_the_motion_and_give_the_blur_lengths():
     """A sideways move of 0.04 m at 2 m depth (f = 100 px): every kernel is the 2 px segment from the
     start to the end projection, against the motion; a point without depth has a zero segment."""
@@ -146,6 +151,7 @@ def test_blur_segments_point_along_the_motion_and_give_the_blur_lengths():
     np.testing.assert_allclose(np.asarray(lengths), np.linalg.norm(np.asarray(segments), axis=1), rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_blur_lengths_have_a_finite_gradient_where_the_camera_does_not_move():
     """At a still exposure every segment is zero; the gradient of the lengths' sum with respect to
     the end pose is then finite (not NaN from the norm at 0), and away from it matches finite differences."""

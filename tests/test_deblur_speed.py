@@ -38,6 +38,7 @@ def table_of(rho: float):
     return TABLE(jnp.asarray(planes), cam, GT.about_middle(), n=N, readout=jnp.float32(rho), rolling=rho > 0), blurry, planes, cam
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rho", [0.0, 0.6])
 def test_table_operator_is_the_blur_model(rho):
     table, blurry, planes, cam = table_of(rho)
@@ -83,6 +84,7 @@ def deblurred_psnr(rho: float, **settings) -> tuple[float, float]:
     return psnr(deblur(blurry, depth, cam, GT, cfg, 1.0, rho), sharp, inner), psnr(blurry, sharp, inner)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rho", [0.0, 0.6])
 def test_table_solver_sharpens_like_the_reference(rho):
     table, blurry_psnr = deblurred_psnr(rho, solver="table", tolerance=0.0)  # all iterations, as the reference
@@ -122,6 +124,7 @@ def test_coarse_to_fine_keeps_the_sharpness(rho):
     assert coarse - blurry_psnr > 0.9 * (full - blurry_psnr), (coarse, full, blurry_psnr)
 
 
+@pytest.mark.slow
 def test_the_coarse_solve_starts_the_fine_steps():
     """One full-resolution step from the upsampled half-resolution solve is far sharper than one
     full-resolution step from the blurry frame: the coarse solve does the work."""
@@ -130,6 +133,7 @@ def test_the_coarse_solve_starts_the_fine_steps():
     assert from_coarse > from_blurry + 5.0 > blurry_psnr + 5.0, (from_coarse, from_blurry, blurry_psnr)
 
 
+@pytest.mark.slow
 def test_coarse_to_fine_on_an_odd_image_size():
     """An image of odd width and height (the half-resolution solve drops the last row and column,
     the upsampled start copies them from their neighbours) is deblurred at its own size, as sharp

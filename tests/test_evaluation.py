@@ -118,6 +118,7 @@ def test_rpe_agrees_with_evo(tmp_path, mbavo):
         assert abs(ours[k] - theirs[k]) < 1e-6, (k, ours[k], theirs[k])
 
 
+@pytest.mark.slow
 def test_exposure_path_error(tmp_path, mbavo):
     stamps, poses, rng = smooth_trajectory(10)
     poses[:, 3:] = [0, 0, 0, 1]  # unrotated cameras: a world-x shift is a camera-x shift

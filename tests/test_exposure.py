@@ -333,6 +333,7 @@ def test_resumed_estimate_continues_as_the_uninterrupted_run(strong, tmp_path):
     assert a.shape == b.shape and np.abs(a[:, 1:4] - b[:, 1:4]).max() < 1e-4
 
 
+@pytest.mark.slow
 def test_pairs_are_tracked_without_the_prior_on_the_finest_levels(strong, tmp_path, monkeypatch):
     """A pair's frames are tracked against each other without the exposure-motion prior, on the
     ``odometry.exposure_pair_levels`` finest pyramid levels only (both frames are tracked already)."""

@@ -16,6 +16,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "mbavo_jax"
 LAYERS = (
     ("errors", "progress", "names", "jaxenv", "lock"),  # error types, progress bar, safe folder names, JAX environment check, run-folder lock
     ("geometry",),  # quaternions, poses, the camera, exposure paths
+    ("imu",),  # IMU data, noise figures and preintegration (on geometry's SO(3))
     ("image", "masked", "blur"),  # images and the blur model
     ("io",),  # file readers and writers (the camera files build a geometry.camera)
     ("config",),  # settings (a config file is read through io)

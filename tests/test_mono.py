@@ -176,6 +176,7 @@ def test_the_exposure_probe_starts_a_monocular_run_from_an_estimate_not_the_gues
 # ------------------------------------------------- candidates of a sharp keyframe in blurry frames
 
 
+@pytest.mark.slow
 def test_sharp_keyframe_candidates_are_found_in_blurry_frames_through_the_blur_model():
     """A deblurred (sharp) keyframe's candidates traced in frames blurred over ~15 px: compared as
     they are, most searches end as outliers; with the frames' exposure paths (``FrameBlur``) the

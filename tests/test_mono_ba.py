@@ -88,6 +88,7 @@ def _linearize(win, camera):
     return _LINEARIZE(win, camera, HUBER, OUTLIER)
 
 
+@pytest.mark.slow
 def test_structured_jacobians_and_normal_equations_match_dense(x64):
     win = _small_window(jnp.float64)
     cam = _camera(64, 48, jnp.float64)
@@ -121,6 +122,7 @@ def _system(win, camera):
     return ba.system(win, camera, HUBER, OUTLIER, ba.make_anchor(win, data, scale_with_prior=False))[0]
 
 
+@pytest.mark.slow
 def test_schur_solve_equals_dense_solve(x64):
     win = _small_window(jnp.float64)
     win = dataclasses.replace(win, idepth=win.idepth * 1.1)  # away from any optimum
@@ -137,6 +139,7 @@ def _sum_equations(a: ba.NormalEquations, b: ba.NormalEquations) -> ba.NormalEqu
     return jax.tree.map(lambda x, y: x + y, a, b)
 
 
+@pytest.mark.slow
 def test_marginalising_then_solving_equals_solving_the_whole(x64):
     """Linear case: one Gauss-Newton step of the whole problem (keyframe 1, the points it hosts and every
     other residual except those of other points into keyframe 1, which DSO drops) equals the step of
@@ -493,6 +496,7 @@ def test_blur_aware_predictions_match_the_recorded_blurry_keyframe(scene_window)
     assert change.max() > 0.05  # the paths are long enough to change the predictions
 
 
+@pytest.mark.slow
 def test_blur_aware_structured_jacobians_match_dense(x64):
     """With exposure paths and recorded images, the blocks against the held blurred predictions are
     the Jacobian of ``residual_vector`` (whose predictions are those of the unmoved window)."""

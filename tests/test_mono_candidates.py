@@ -127,6 +127,7 @@ def test_select_pads_to_count_and_finds_nothing_on_a_flat_image(scene):
 # -------------------------------------------------------------------------------------------- tracing
 
 
+@pytest.mark.slow
 def test_sharp_frames_converge_to_the_true_inverse_depth(scene, selected):
     camera, host, frames, _ = scene
     states = trace_all(selected, camera, host, frames, [f.sharp for f in frames])

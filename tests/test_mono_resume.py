@@ -102,6 +102,7 @@ def test_a_stop_inside_the_exposure_probe_writes_nothing(seq_dir, tmp_path, monk
     assert committed_rows(out) == [] and not (out / "trajectory.txt").exists() and not (out / "checkpoint.npz").exists()
 
 
+@pytest.mark.slow
 def test_resume_without_a_checkpoint_is_one_clear_line(seq_dir, tmp_path, mbavo):
     """Also when the run first releases the process's compiled programs (``runtime.release_programs_at``
     tiny): its note is printed only once the input has passed the checks."""

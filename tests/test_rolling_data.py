@@ -57,6 +57,7 @@ def _u8(img) -> np.ndarray:
 # ------------------------------------------------------------------------------------ generator
 
 
+@pytest.mark.slow
 def test_readout_zero_renders_as_the_global_shutter_generator(tmp_path):
     """R = 0: each frame is exactly the mean of the sub-frame renders over [t - τ/2, t + τ/2] (the
     generator before rolling shutter), and nothing of a rolling shutter is written."""
@@ -76,6 +77,7 @@ def test_readout_zero_renders_as_the_global_shutter_generator(tmp_path):
     assert "readout_ms" not in yaml.safe_load((tmp_path / "s" / "camera.yaml").read_text()) and seq.readout_s == 0.0
 
 
+@pytest.mark.slow
 def test_rows_are_rendered_at_their_own_times(tmp_path):
     """Sharp frames (τ = 0) with a 30 ms readout: row v is row v of the global-shutter render at
     t0 + v/(H-1)·R, where t0 = t_mid - R/2."""
@@ -127,6 +129,7 @@ def test_exposure_rows_agree_with_the_exposure_path(rolling):
     assert synth["readout_ms"] == 30.0 and synth["exposure_ms"] == 25.0 and len(synth["bend_px"]) == 3
 
 
+@pytest.mark.slow
 def test_shake_bends_the_exposure_path(tmp_path):
     bends = {}
     for shake in (0.0, 1.0):
@@ -140,6 +143,7 @@ def test_readout_longer_than_a_frame_is_refused(mbavo, tmp_path):
     assert res.returncode == 1 and "readout_ms" in res.stderr and "Traceback" not in res.stderr
 
 
+@pytest.mark.slow
 def test_blurring_a_real_clip_with_a_readout(tmp_path, mbavo):
     """synth --from --readout-ms: camera.yaml's readout, rows along the model's per-row paths."""
     src = make_tum(tmp_path / "tum", n=3)
@@ -211,6 +215,7 @@ def _linear_truth(rho: float, height: int = H) -> tuple[ExposureRows, tuple]:
     return truth, (truth.stamps, start, end)
 
 
+@pytest.mark.slow
 def test_row_error_is_zero_for_the_true_path_and_not_for_a_global_shutter_estimate(x64):
     cam = _camera(small()).as_dict()
     truth, path = _linear_truth(0.5)

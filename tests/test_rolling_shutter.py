@@ -105,6 +105,7 @@ def _global_shutter_reference(img, cam, traj, pixels, depths):
     return jnp.where(valid, jnp.mean(values, axis=0), 0.0), valid
 
 
+@pytest.mark.slow
 def test_zero_readout_is_the_global_shutter_model():
     img, cam, depth = scene(48, 64)
     img = jnp.asarray(img)

@@ -56,6 +56,7 @@ def _close(a: Pose, b: Pose, atol: float) -> None:
 # ------------------------------------------------------------------------------------ the spline
 
 
+@pytest.mark.slow
 def test_evenly_spaced_controls_give_the_straight_path(x64):
     line = ExposureTrajectory(Pose.identity(jnp.float64).plus(jnp.array([0.1, -0.2, 0.05, 0.1, 0.2, 0.3])),
                               Pose.identity(jnp.float64).plus(jnp.array([0.15, -0.1, 0.1, 0.2, 0.1, 0.35])))
@@ -70,6 +71,7 @@ def test_evenly_spaced_controls_give_the_straight_path(x64):
     np.testing.assert_array_equal(spline.plus(jnp.zeros(24)).controls.q, spline.controls.q)
 
 
+@pytest.mark.slow
 def test_spline_ends_middle_and_moves():
     spline = curved([0.01, 0.0, 0.02, 0.05, 0.0, -0.01], [0.02, -0.01, 0.0, 0.1, 0.02, 0.0], [0.0, 0.03, 0.0, 0.0, 0.04, 0.0])
     _close(spline.start, spline.at(0.0), 1e-6)
@@ -175,6 +177,7 @@ def test_cubic_on_a_straight_path_is_no_worse():
     assert err["cubic"] <= 1.2 * err["linear"] + 0.05, err
 
 
+@pytest.mark.slow
 def test_curvature_prior_is_zero_on_straight_paths_and_straightens_the_fit():
     """The prior's residuals vanish on a constant-velocity spline; a stiff prior (tiny σ) keeps a
     fit to a bent frame nearly straight."""
@@ -194,6 +197,7 @@ def test_curvature_prior_is_zero_on_straight_paths_and_straightens_the_fit():
 # ---------------------------------------------------------------------------------- run records
 
 
+@pytest.mark.slow
 def test_spline_file_and_row_error_from_it(tmp_path):
     """A cubic result's control poses go to exposure_spline.txt (camera-to-world, the spline at 0
     being exposure.txt's start); the per-row error read from them equals the straight path's when

@@ -202,7 +202,7 @@ def test_odometry_sweep_file_is_the_benchmark():
     bench = odometry_sweep({}, depth_weight=cfg.depth_weight, peer_depth_max=cfg.peer_depth_max)
     assert spec.configurations == bench.configurations and spec.peers == bench.peers
     assert spec.peer_depth_max == bench.peer_depth_max
-    names = [*cfg.presets.split(","), *(f"{p}_sensor" for p in cfg.sensor_presets.split(",")), "tum_blurred"]
+    names = [*cfg.presets.split(","), *(f"{p}_sensor" for p in cfg.sensor_presets.split(",")), *(f"tum_blurred{b:g}" for b in cfg.tum_blur_list())]
     assert [s.name for s in spec.sequences] == names
     for s in spec.sequences[:-1]:
         assert (s.synth["frames"], s.synth["width"], s.synth["height"], s.synth["seed"]) == (cfg.frames, cfg.width, cfg.height, cfg.seed)

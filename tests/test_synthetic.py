@@ -47,6 +47,7 @@ def test_layout(strong_small):
     assert 3.0 < yaml.safe_load((d / "synth.yaml").read_text())["mean_blur_px"] < 7.0
 
 
+@pytest.mark.slow
 def test_deterministic_for_a_seed(tmp_path):
     digests = []
     for k in range(2):
@@ -224,6 +225,7 @@ def test_no_exposure_info_flag(tmp_path, mbavo):
     assert abs(open_sequence(out)[1].exposure - 0.020) < 1e-9
 
 
+@pytest.mark.slow
 def test_blurring_a_clip_without_exposure_info(tmp_path, mbavo):
     from .conftest import make_tum
 

@@ -6,6 +6,7 @@
 * ``odometry``: whole sequences as a sweep, ATE and frame drops (``mbavo bench odometry``);
 * ``speed``: where the loop's time goes, start-up, memory (``mbavo bench speed``);
 * ``mono``: the monocular system against n = 1 and the RGB-D loop (``mbavo bench mono``);
+* ``dso``: DSO as a peer of ``mbavo bench mono`` (its dataset layout, a subprocess run, its result read);
 * ``rolling``: the rolling-shutter model and the cubic path (``mbavo bench rolling-shutter``).
 
 A method's run over a sequence (ours or a peer) is ``mbavo_jax.methods``'s, which the sweep's workers

@@ -10,7 +10,10 @@ preset again at more seeds, and a second table of each method's mean ATE over th
 ``seed_means.json`` beside ``results.json``). With ``--draws K``, each method runs K times on each
 sequence, at K Huber thresholds a part in a thousand apart (``config.HUBER_DRAWS``): a monocular run
 can keep or lose its scale on a rounding-sized change, and the mean over the draws is what the
-second table then compares.
+second table then compares. With ``--dso PATH``, DSO runs on each sequence too (method ``dso``,
+:mod:`.dso`), and each of our rows adds the ATE of it and of DSO over the frames both posed.
+Every row says when the method first posed a frame, how many it posed and how often it started
+afresh (ours: frames.csv's "initialising again"; DSO: its "RESETTING!").
 """
 
 from __future__ import annotations
@@ -28,18 +31,23 @@ from ..config import HUBER_DRAWS, BenchConfig, EvalConfig, RunConfig, TrackerCon
 from ..datasets import open_sequence
 from ..errors import MbavoError
 from ..io import read_tum_trajectory
+from .dso import check_dso_binary, dso_restarts, run_dso
 
 __all__ = ["MONO_METHODS", "mono_configs", "draw_huber", "run_draws", "run_mono_benchmark", "format_mono_table", "format_seed_table",
-           "main_mono", "seed_groups", "seed_means", "trajectory_scores"]
+           "main_mono", "seed_groups", "seed_means", "trajectory_scores", "posing", "ate_both_posed", "DSO_METHOD"]
 
-MONO_METHODS = ("mono_n64", "mono_adaptive", "mono_n1", "rgbd_n64")
+MONO_METHODS = ("mono_n64", "mono_adaptive", "mono_n1", "mono_direct_n64", "mono_direct_n1", "rgbd_n64")
+DSO_METHOD = "dso"  # the peer, run when --dso names its binary
+RESTART_NOTE = "initialising again"  # frames.csv note of a monocular run that lost track and starts afresh (odometry/mono.py)
 
 
 def mono_configs(base: TrackerConfig, methods=MONO_METHODS) -> dict[str, RunConfig]:
-    """The run settings of each method (``rgbd_*``: the RGB-D loop, for reference)."""
-    mono = lambda t: RunConfig(tracker=t).replace(odometry=dict(mode="mono"))
+    """The run settings of each method (``mono_direct_*``: started by the direct initialiser,
+    ``mono.initialiser = direct``; ``rgbd_*``: the RGB-D loop, for reference)."""
+    mono = lambda t, init="corners": RunConfig(tracker=t).replace(odometry=dict(mode="mono"), mono=dict(initialiser=init))
+    blind = dataclasses.replace(base, blur_aware=False)
     configs = {"mono_n64": mono(base), "mono_adaptive": mono(dataclasses.replace(base, n_mode="adaptive")),
-               "mono_n1": mono(dataclasses.replace(base, blur_aware=False)),
+               "mono_n1": mono(blind), "mono_direct_n64": mono(base, "direct"), "mono_direct_n1": mono(blind, "direct"),
                "rgbd_n64": RunConfig(tracker=base).replace(odometry=dict(mode="rgbd"))}
     return {m: c for m, c in configs.items() if m in methods}
 
@@ -61,6 +69,54 @@ def trajectory_scores(seq, run: pathlib.Path, config: EvalConfig, delta: int = 1
     except MbavoError:
         return {}
     return {"ate_rmse_m": res["rmse"], "ate_pct": 100 * res["rmse"] / max(drift["path_length_m"], 1e-12), **drift}
+
+
+def _trajectory(run: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
+    """A run's trajectory.txt (stamps, poses); empty when it has none or no pose."""
+    try:
+        return read_tum_trajectory(run / "trajectory.txt")
+    except MbavoError:  # missing, or a header without poses (never initialised)
+        return np.zeros(0), np.zeros((0, 7))
+
+
+def run_restarts(run: pathlib.Path) -> int:
+    """How often a run started afresh: our frames.csv notes "initialising again", DSO's dso.log says "RESETTING!"."""
+    if (run / "frames.csv").is_file():
+        return sum(RESTART_NOTE in (r.get("note") or "") for r in _frame_rows(run))
+    return dso_restarts((run / "dso.log").read_text(errors="replace")) if (run / "dso.log").is_file() else 0
+
+
+def posing(stamps, run: pathlib.Path, max_diff: float) -> dict:
+    """The frames (of the sequence's ``stamps``) a run posed: the first one's index (None: none),
+    how many, and how often it started afresh (:func:`run_restarts`)."""
+    from ..evaluation.associate import associate
+
+    t, _ = _trajectory(run)
+    index = np.unique(associate(t, np.asarray(stamps, np.float64), max_diff)[1]) if len(t) else np.zeros(0, np.int64)
+    return {"first_posed": int(index[0]) if len(index) else None, "posed": int(len(index)), "restarts": run_restarts(run)}
+
+
+def ate_both_posed(seq, run: pathlib.Path, peer: pathlib.Path, config: EvalConfig) -> dict:
+    """Two runs scored over the frames both posed: ``both_posed`` (how many) and, with at least 3
+    and ground truth, each one's ATE after its own Sim(3) alignment on that subset (m and % of the
+    subset's true path length): ``ate_both_m``/``ate_both_pct`` (``run``), ``peer_ate_both_m``/``..._pct``."""
+    from ..evaluation.associate import associate
+    from ..evaluation.metrics import ape
+
+    (t_a, p_a), (t_b, p_b) = _trajectory(run), _trajectory(peer)
+    i_a, i_b = associate(t_a, t_b, config.t_max_diff) if len(t_a) and len(t_b) else (np.zeros(0, int), np.zeros(0, int))
+    out = {"both_posed": int(len(i_a))}
+    if len(i_a) < 3 or seq.groundtruth is None:
+        return out
+    t_gt, p_gt = seq.groundtruth
+    try:
+        a, b = (ape(t_gt, p_gt, t, p, align="sim3", max_diff=config.t_max_diff) for t, p in ((t_a[i_a], p_a[i_a]), (t_b[i_b], p_b[i_b])))
+    except MbavoError:  # no ground truth at those stamps
+        return out
+    _, i_gt = associate(t_a[i_a], t_gt, config.t_max_diff)
+    length = max(float(np.linalg.norm(np.diff(p_gt[i_gt, :3], axis=0), axis=1).sum()), 1e-12)
+    return {**out, "ate_both_m": a["rmse"], "ate_both_pct": 100 * a["rmse"] / length, "peer_ate_both_m": b["rmse"],
+            "peer_ate_both_pct": 100 * b["rmse"] / length}
 
 
 def _frame_rows(run: pathlib.Path) -> list[dict]:
@@ -90,8 +146,8 @@ def run_method(seq, run: pathlib.Path, config: RunConfig, progress: bool) -> dic
     seconds, after = time.perf_counter() - t0, compile_counts()
     rows = _frame_rows(run)
     waiting = sum(r["status"] == "initialising" for r in rows)
-    return {**trajectory_scores(seq, run, config.evaluation), "frames": summ["frames"], "dropped": summ["dropped"],
-            "initialising": waiting, "keyframes": summ["keyframes"], **_timing(rows, seconds),
+    return {**trajectory_scores(seq, run, config.evaluation), **posing(seq.timestamps, run, config.evaluation.t_max_diff),
+            "frames": summ["frames"], "dropped": summ["dropped"], "initialising": waiting, "keyframes": summ["keyframes"], **_timing(rows, seconds),
             "compile_s": after["compile_seconds"] - before["compile_seconds"], "compiled": after["compiled"] - before["compiled"]}
 
 
@@ -121,13 +177,18 @@ def run_draws(seq, folder: pathlib.Path, config: RunConfig, draws: int = 1, prog
 
 
 def run_mono_benchmark(sequences: dict, out_root, methods=MONO_METHODS, progress: bool = True,
-                       tracker_overrides: dict | None = None, draws: int = 1) -> dict:
+                       tracker_overrides: dict | None = None, draws: int = 1, dso: str = "", dso_timeout: float = 600.0) -> dict:
     """Each of ``methods`` on each sequence (name -> folder), at ``draws`` Huber draws
-    (:func:`run_draws`); ``rgbd_*`` only where there is depth. ``out_root/results.json`` holds
-    every finished method's scores as soon as it finishes."""
-    unknown = [m for m in methods if m not in MONO_METHODS]
+    (:func:`run_draws`); ``rgbd_*`` only where there is depth; with ``dso`` (a ``dso_dataset``
+    binary) DSO too, once per sequence, and each of our rows adds :func:`ate_both_posed` against it.
+    ``out_root/results.json`` holds every finished method's scores as soon as it finishes."""
+    unknown = [m for m in methods if m not in (*MONO_METHODS, DSO_METHOD)]
     if unknown:
-        raise MbavoError(f"unknown method {', '.join(unknown)} (choose from {', '.join(MONO_METHODS)})")
+        raise MbavoError(f"unknown method {', '.join(unknown)} (choose from {', '.join(MONO_METHODS)}, {DSO_METHOD})")
+    if DSO_METHOD in methods and not dso:
+        raise MbavoError(f"method {DSO_METHOD} needs --dso PATH (a dso_dataset binary)")
+    if dso:
+        check_dso_binary(dso)
     results, root = {}, pathlib.Path(out_root)
     root.mkdir(parents=True, exist_ok=True)
     for name, path in sequences.items():
@@ -144,18 +205,63 @@ def run_mono_benchmark(sequences: dict, out_root, methods=MONO_METHODS, progress
             except MbavoError as exc:
                 row[method] = {"error": str(exc)}
             (root / "results.json").write_text(json.dumps(results, indent=2))
+        if dso:
+            if progress:
+                print(f"{name}: {DSO_METHOD}", file=sys.stderr)
+            row[DSO_METHOD] = dso_row(seq, root / name / DSO_METHOD, dso, dso_timeout)
+            compare_with_dso(seq, row, root / name)
+            (root / "results.json").write_text(json.dumps(results, indent=2))
     return results
 
 
+def dso_row(seq, run: pathlib.Path, binary: str, timeout_s: float) -> dict:
+    """DSO's row: :func:`.dso.run_dso` scored as our runs are (:func:`trajectory_scores`, :func:`posing`)."""
+    try:
+        facts = run_dso(seq, run, binary, timeout_s)
+    except MbavoError as exc:
+        return {"error": str(exc)}
+    evaluation = EvalConfig()
+    return {**facts, **trajectory_scores(seq, run, evaluation), **posing(seq.timestamps, run, evaluation.t_max_diff)}
+
+
+def compare_with_dso(seq, row: dict, folder: pathlib.Path) -> None:
+    """Add :func:`ate_both_posed` against DSO's run (``folder/dso``) to each of our rows of ``row``."""
+    if "error" in row.get(DSO_METHOD, {"error": ""}):
+        return
+    for method, r in row.items():
+        if method != DSO_METHOD and "error" not in r:
+            r.update(ate_both_posed(seq, folder / method, folder / DSO_METHOD, EvalConfig()))
+
+
 def _cell(r: dict) -> str:
+    """ATE | drift | frames without pose | seconds per frame (DSO: its whole process)."""
     if "error" in r:
         return f"error: {r['error']}"
     if "ate_rmse_m" not in r:
-        return f"lost ({r.get('dropped', '?')} dropped, {r.get('initialising', '?')} initialising)"
-    return (f"{r['ate_rmse_m']:.4f} m ({r['ate_pct']:.2f} %) | drift {r['drift_trans_pct']:.1f} % / scale {r['drift_scale_pct']:.1f} % | "
-            f"drop {r['dropped']} init {r['initialising']} kf {r['keyframes']} | {r['seconds_per_frame']:.2f} s/f "
-            f"(track {r['track_s_per_frame']:.2f}, BA {r['backend_s_per_frame']:.2f}, other {r['other_s_per_frame']:.2f}; "
-            f"back-end/kf {r['backend_s_per_keyframe']:.2f}; compiling {r['compile_s']:.0f} s)")
+        dropped = r["dropped"] if "dropped" in r else r["frames"] - r.get("posed", 0) if "frames" in r else "?"  # DSO: frames not posed
+        return f"lost ({dropped} dropped, {r.get('initialising', '?')} initialising)"
+    scores = f"{r['ate_rmse_m']:.4f} m ({r['ate_pct']:.2f} %) | drift {r['drift_trans_pct']:.1f} % / scale {r['drift_scale_pct']:.1f} % | "
+    if "track_s_per_frame" not in r:  # DSO
+        return scores + f"{r['frames'] - r['posed']} of {r['frames']} | {r['seconds_per_frame']:.2f} s/f (the whole DSO process)"
+    return scores + (f"drop {r['dropped']} init {r['initialising']} kf {r['keyframes']} | {r['seconds_per_frame']:.2f} s/f "
+                     f"(track {r['track_s_per_frame']:.2f}, BA {r['backend_s_per_frame']:.2f}, other {r['other_s_per_frame']:.2f}; "
+                     f"back-end/kf {r['backend_s_per_keyframe']:.2f}; compiling {r['compile_s']:.0f} s)")
+
+
+def _posing_cell(r: dict) -> str:
+    """First posed frame / frames posed of all / restarts (:func:`posing`)."""
+    if "posed" not in r:
+        return ""
+    return f"{'-' if r['first_posed'] is None else r['first_posed']} / {r['posed']} of {r['frames']} / {r['restarts']}"
+
+
+def _both_cell(r: dict) -> str:
+    """Ours / DSO ATE (% of path) over the frames both posed (:func:`ate_both_posed`)."""
+    if "both_posed" not in r:
+        return ""
+    if "ate_both_pct" not in r:
+        return f"{r['both_posed']} frames: too few to score"
+    return f"{r['ate_both_pct']:.2f} % / {r['peer_ate_both_pct']:.2f} % ({r['both_posed']} frames)"
 
 
 def _draws_cell(r: dict) -> str:
@@ -166,17 +272,19 @@ def _draws_cell(r: dict) -> str:
 
 
 def format_mono_table(results: dict) -> str:
-    """A markdown table: one row per sequence and method (with draws, a last column: the ATE over
-    them, :func:`_draws_cell`)."""
+    """A markdown table: one row per sequence and method; with DSO, a column of ours and DSO's ATE
+    over the frames both posed; with draws, a last column: the ATE over them (:func:`_draws_cell`)."""
     several = any("draws" in r for row in results.values() for r in row.values())
+    dso = any(DSO_METHOD in row for row in results.values())
     lines = ["| sequence | method | ATE Sim(3) (% of path) | drift per 10 frames (trans / scale) | frames without pose | "
-             "s per frame (track, BA, other; BA per keyframe; compiling in all) |"
-             + (" over the draws: mean ATE (range) |" if several else ""),
-             "|---|---|---|---|---|---|" + ("---|" if several else "")]
+             "s per frame (track, BA, other; BA per keyframe; compiling in all) | first posed / posed / restarts |"
+             + (" ATE over the frames both posed: this / DSO |" if dso else "") + (" over the draws: mean ATE (range) |" if several else ""),
+             "|---|---|---|---|---|---|---|" + ("---|" if dso else "") + ("---|" if several else "")]
     for name, row in results.items():
         for method, r in row.items():
             parts = _cell(r).split(" | ")
-            parts = parts + [""] * (4 - len(parts)) + ([_draws_cell(r) if "draws" in r else ""] if several else [])
+            parts = parts + [""] * (4 - len(parts)) + [_posing_cell(r)] + ([_both_cell(r)] if dso else [])
+            parts += [_draws_cell(r) if "draws" in r else ""] if several else []
             lines.append(f"| {name} | {method} | " + " | ".join(parts) + " |")
     return "\n".join(lines)
 
@@ -186,6 +294,8 @@ def main_mono(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
     mono methods), KITTI 07 and the TUM clip sharp and blurred."""
     from .sequences import bench_data, real_clip, tum_blurred, with_hidden_exposure
 
+    if cfg.dso:
+        check_dso_binary(cfg.dso)  # before any sequence is made
     groups = seed_groups(cfg)
     seqs = {name: bench_data(p, dataclasses.replace(cfg, seed=s), cfg.frames, quiet, exact=True)
             for p, named in groups.items() for name, s in named.items()}
@@ -197,7 +307,7 @@ def main_mono(cfg: BenchConfig, fmt: str = "table", quiet: bool = False) -> int:
         seqs["tum_xyz_blurred"] = tum_blurred(cfg, quiet)
     methods = [m for m in cfg.methods.split(",") if m] or MONO_METHODS
     root = pathlib.Path(cfg.out if cfg.out != BenchConfig().out else "runs/bench_mono")
-    results = run_mono_benchmark(seqs, root, methods, progress=not quiet, draws=cfg.draws)
+    results = run_mono_benchmark(seqs, root, methods, progress=not quiet, draws=cfg.draws, dso=cfg.dso, dso_timeout=cfg.dso_timeout)
     names, several = {p: [f"{n}_noexp" for n in named] for p, named in groups.items()}, len(cfg.seed_list()) > 1 or cfg.draws > 1
     if several:
         (root / "seed_means.json").write_text(json.dumps({p: seed_means(results, n) for p, n in names.items()}, indent=2))

@@ -13,7 +13,8 @@ import sys
 from ..config import BenchConfig, SweepConfig
 from ..methods import ODOMETRY_METHODS, check_methods, parse_methods
 from ..sweep import SequenceSpec, SweepSpec, as_overrides, run_sweep, summary_line
-from .sequences import bench_data, tum_blurred, with_hidden_exposure
+from .goals import format_goals_table, with_goals
+from .sequences import generated_sequences, make_generated, tum_blurred, with_hidden_exposure
 
 __all__ = ["OURS_ODOMETRY", "odometry_sweep", "nested_results", "run_odometry_benchmark", "format_odometry_table", "main_odometry"]
 
@@ -89,8 +90,9 @@ def _exposure_cell(x: dict) -> str:
 
 
 def format_odometry_table(res: dict) -> str:
-    """Three tables, one row per method and one column per sequence: ATE (mm), frame-drop rate,
-    seconds per frame; then the deblurred keyframes' PSNR/SSIM."""
+    """Tables with one row per method and one column per sequence: ATE (mm), frame-drop rate,
+    seconds per frame, exposure; the deblurred keyframes' PSNR/SSIM; then the goals, one row per
+    sequence (``goals.format_goals_table``)."""
     names = list(res)
     w = max([20, *(len(n) + 2 for n in names)])  # a column fits its sequence's name and an exposure cell
     head = f"{'method':<16}" + "".join(f"{n:>{w}}" for n in names)
@@ -120,27 +122,22 @@ def format_odometry_table(res: dict) -> str:
     lines += ["", "ours_n64/n1/adaptive: images only (MBA-VO); *_depth: plus the current frame's depth (tracking.geometric);",
               "open3d: hybrid term (photometric + ICP on the current frame's depth); open3d_color: photometric only;",
               "opencv: cv2.Odometry RGB_DEPTH (uses the current frame's depth); *_sensor sequences: Kinect-class depth (mbavo synth --depth-model sensor)"]
-    return "\n".join(lines)
+    return "\n".join([*lines, "", format_goals_table(res)])
 
 
 def main_odometry(cfg: BenchConfig, fmt: str = "table", quiet: bool = False, settings: SweepConfig = SweepConfig()) -> int:
-    """``mbavo bench odometry``: generated sequences at each blur preset plus the blurred TUM clip,
-    run as a sweep (``settings``: jobs, engine; finished runs in ``cfg.out`` are kept)."""
+    """``mbavo bench odometry``: generated sequences at each blur preset (and size and seed,
+    ``sequences.generated_sequences``) plus the TUM clip at each blur of ``cfg.tum_blur_px``, run as
+    a sweep (``settings``: jobs, engine; finished runs in ``cfg.out`` are kept); the results, each
+    sequence with its ``goals`` row, are printed and written to ``results.json``."""
     methods = parse_methods(cfg.methods, cfg.no_peers)
-    seqs = {}
-    for preset in filter(None, cfg.presets.split(",")):
-        seqs[preset] = bench_data(preset, cfg, cfg.frames, quiet, exact=True)
-    for preset in filter(None, cfg.sensor_presets.split(",")):
-        seqs[f"{preset}_sensor"] = bench_data(preset, cfg, cfg.frames, quiet, depth_model="sensor", exact=True)
-    for scene in filter(None, cfg.scenes.split(",")):
-        for preset in filter(None, cfg.scene_presets.split(",")):
-            seqs[f"{preset}_{scene}"] = bench_data(preset, cfg, cfg.frames, quiet, scene=scene, exact=True)
+    seqs = {name: make_generated(g, cfg, quiet) for name, g in generated_sequences(cfg).items()}
     if cfg.tum:
-        seqs["tum_blurred"] = tum_blurred(cfg, quiet)
+        seqs.update({f"tum_blurred{px:g}": tum_blurred(cfg, quiet, px) for px in cfg.tum_blur_list()})
     seqs = with_hidden_exposure(seqs, cfg.hide_exposure)
     root = pathlib.Path(cfg.out)
-    res = run_odometry_benchmark(seqs, root, progress=not quiet, depth_weight=cfg.depth_weight, methods=methods,
-                                 peer_depth_max=cfg.peer_depth_max, settings=settings)
+    res = with_goals(run_odometry_benchmark(seqs, root, progress=not quiet, depth_weight=cfg.depth_weight, methods=methods,
+                                            peer_depth_max=cfg.peer_depth_max, settings=settings))
     print(json.dumps(res, indent=2) if fmt == "json" else format_odometry_table(res))
     (root / "results.json").write_text(json.dumps(res, indent=2))
     return 0

@@ -10,6 +10,7 @@ import numpy as np
 
 from ..errors import FrameIndexError
 from ..geometry.camera import PinholeCamera
+from ..imu.data import ImuData
 from ..io import ExposureRows, check_size
 from .distortion import CameraModel
 
@@ -43,6 +44,8 @@ class Sequence:
     ``exposure_rows``: per-row exposure paths of a rolling-shutter sequence (``exposure_rows.txt``), or None.
     ``lens``: the camera its calibration file describes, when its images are undistorted at load into
     ``camera`` (:mod:`~mbavo_jax.datasets.distortion`); None: ``camera`` is the calibration itself.
+    ``imu``: the IMU's samples, calibration and noise figures (:class:`~mbavo_jax.imu.data.ImuData`;
+    our ``imu.txt`` with camera.yaml's ``imu:`` block, EuRoC's ``mav0/imu0``), or None.
     """
 
     name: str
@@ -58,6 +61,7 @@ class Sequence:
     meta: dict = dataclasses.field(default_factory=dict)  # e.g. camera.yaml extras: response_gamma
     exposure_rows: ExposureRows | None = None
     lens: CameraModel | None = None
+    imu: ImuData | None = None
 
     @property
     def camera_model(self) -> dict:

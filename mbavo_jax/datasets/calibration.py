@@ -17,7 +17,7 @@ from ..errors import DataError
 from ..io import data_lines, read_image_gray, read_text, yaml_number
 from .distortion import CameraModel, Undistorter, camera_model, undistorter
 
-__all__ = ["read_euroc_sensor", "read_dso_camera", "EUROC_MODELS", "DSO_MODELS"]
+__all__ = ["read_euroc_sensor", "read_euroc_yaml", "euroc_T_BS", "check_rigid", "read_dso_camera", "EUROC_MODELS", "DSO_MODELS"]
 
 # EuRoC / Kalibr distortion_model names and the model each is.
 EUROC_MODELS = {"radial-tangential": "radtan", "radtan": "radtan", "plumb_bob": "radtan", "equidistant": "equidistant",
@@ -45,7 +45,7 @@ def _euroc_size(path, info: dict) -> tuple[int, int]:
     return int(w), int(h)
 
 
-def _euroc_T_BS(path, info: dict) -> np.ndarray:
+def euroc_T_BS(path, info: dict) -> np.ndarray:
     """``T_BS`` (the camera in the body frame, 4x4 row by row under ``data``) as a rigid transform;
     the identity when absent."""
     if "T_BS" not in info:
@@ -57,9 +57,14 @@ def _euroc_T_BS(path, info: dict) -> np.ndarray:
         if key in tbs and yaml_number(path, f"'T_BS' {key}", tbs[key]) != 4:
             raise DataError(path, f"'T_BS' {key} must be 4, got {tbs[key]!r}")
     T = np.array(_yaml_numbers(path, {"T_BS data": tbs["data"]}, "T_BS data", 16)).reshape(4, 4)
+    return check_rigid(path, "T_BS", T)
+
+
+def check_rigid(path, what: str, T: np.ndarray) -> np.ndarray:
+    """``T`` (4, 4) if it is a rigid transform, else a DataError naming ``path`` and ``what``."""
     R = T[:3, :3]
     if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6) or not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
-        raise DataError(path, "'T_BS' is not a rigid transform (a rotation and a translation over the row 0 0 0 1)")
+        raise DataError(path, f"'{what}' is not a rigid transform (a rotation and a translation over the row 0 0 0 1)")
     return T
 
 
@@ -80,24 +85,30 @@ def _euroc_model(path, info: dict) -> tuple[str, list[float]]:
     return model, ([] if model == "pinhole" else coeffs)
 
 
-def read_euroc_sensor(path) -> tuple[CameraModel, np.ndarray]:
-    """EuRoC's ``cam0/sensor.yaml``: (the lens: ``intrinsics`` fu fv cu cv, ``resolution``,
-    ``distortion_model`` and ``distortion_coefficients``; T_BS (4, 4), the camera in the body frame)."""
-    path = pathlib.Path(path)
-    text = re.sub(r"^%YAML.*$", "", read_text(path, "EuRoC sensor.yaml"), flags=re.M)
+def read_euroc_yaml(path, what: str) -> dict:
+    """A EuRoC ``sensor.yaml`` (its ``%YAML:1.0`` line dropped) as a mapping; DataError otherwise."""
+    text = re.sub(r"^%YAML.*$", "", read_text(path, what), flags=re.M)
     try:
         info = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise DataError(path, f"not valid YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(info, dict):
-        raise DataError(path, "EuRoC sensor.yaml must be a mapping of keys to values")
+        raise DataError(path, f"{what} must be a mapping of keys to values")
+    return info
+
+
+def read_euroc_sensor(path) -> tuple[CameraModel, np.ndarray]:
+    """EuRoC's ``cam0/sensor.yaml``: (the lens: ``intrinsics`` fu fv cu cv, ``resolution``,
+    ``distortion_model`` and ``distortion_coefficients``; T_BS (4, 4), the camera in the body frame)."""
+    path = pathlib.Path(path)
+    info = read_euroc_yaml(path, "EuRoC sensor.yaml")
     missing = [k for k in ("intrinsics", "resolution") if k not in info]
     if missing:
         raise DataError(path, f"missing key(s): {', '.join(missing)}")
     intrinsics = _yaml_numbers(path, info, "intrinsics", 4)
     w, h = _euroc_size(path, info)
     model, coeffs = _euroc_model(path, info)
-    return camera_model(path, model, intrinsics, w, h, coeffs), _euroc_T_BS(path, info)
+    return camera_model(path, model, intrinsics, w, h, coeffs), euroc_T_BS(path, info)
 
 
 def _dso_numbers(path, parts: list[str], line: int, what: str) -> list[float]:

@@ -33,6 +33,7 @@ from ..io import (
 from .base import Frame, Sequence
 from .calibration import read_dso_camera, read_euroc_sensor
 from .distortion import Undistorter, camera_model, undistorter
+from .imu import open_euroc_imu, open_imu
 
 __all__ = ["open_sequence", "open_tum", "open_kitti", "open_euroc", "open_dso", "open_image_folder", "image_files", "natural_key"]
 
@@ -100,7 +101,8 @@ def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02, 
     read when ``depth`` is false),
     ``groundtruth.txt``, exposure paths (``groundtruth_exposure.txt``, else ``exposure.txt``; per
     row: ``exposure_rows.txt``) and exposure times (``times.txt``, else camera.yaml's ``exposure_ms``;
-    the rolling-shutter readout: camera.yaml's ``readout_ms``, ``Sequence.readout_s``); camera from ``camera.yaml``
+    the rolling-shutter readout: camera.yaml's ``readout_ms``, ``Sequence.readout_s``; the IMU: ``imu.txt``
+    with camera.yaml's ``imu:`` block, ``Sequence.imu``); camera from ``camera.yaml``
     or the TUM calibration named in ``rgb.txt``'s header / the folder name (freiburg1/2/3; fr1 and fr2
     images and depth undistorted at load with TUM's published coefficients, :func:`_tum_camera`)."""
     root = pathlib.Path(path)
@@ -149,7 +151,7 @@ def open_tum(path, camera: PinholeCamera | None = None, max_diff: float = 0.02, 
         return Frame(i, float(stamps[i]), img, camera, depth, exp, str(img_path))
 
     return Sequence(root.name, root, camera, stamps, _undistorting(load, und), exposures, gt, exp_paths, depth_names is not None,
-                    "tum", cam_info, exposure_rows=exp_rows, lens=None if und is None else und.lens)
+                    "tum", cam_info, exposure_rows=exp_rows, lens=None if und is None else und.lens, imu=open_imu(root, cam_info))
 
 
 def _kitti_camera(calib_path, image_path) -> PinholeCamera:
@@ -243,7 +245,7 @@ def open_euroc(path) -> Sequence:
     """EuRoC MAV: ``mav0/cam0/data.csv`` (ns stamps), ``mav0/cam0/sensor.yaml`` (intrinsics,
     resolution, distortion, T_BS: :func:`~mbavo_jax.datasets.calibration.read_euroc_sensor`; the
     images undistorted at load); ground truth ``mav0/state_groundtruth_estimate0/data.csv`` (body poses,
-    converted to the camera with T_BS)."""
+    converted to the camera with T_BS); the IMU of ``mav0/imu0`` when there (``Sequence.imu``)."""
     from ..geometry.pose import Pose
 
     root = pathlib.Path(path)
@@ -277,7 +279,8 @@ def open_euroc(path) -> Sequence:
         p = cam_dir / "data" / names[i]
         return Frame(i, float(stamps[i]), read_image_gray(p), camera, None, None, str(p))
 
-    return Sequence(root.name, root, camera, stamps, _undistorting(load, und), None, gt, None, False, "euroc", lens=und.lens)
+    return Sequence(root.name, root, camera, stamps, _undistorting(load, und), None, gt, None, False, "euroc", lens=und.lens,
+                    imu=open_euroc_imu(root, T_BS))
 
 
 def _euroc_groundtruth(path) -> np.ndarray:

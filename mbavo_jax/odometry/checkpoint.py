@@ -38,6 +38,7 @@ from ..errors import DataError
 from ..geometry import ExposureTrajectory, PinholeCamera, Pose
 from ..geometry.spline import SplineTrajectory
 from ..mono.candidates import Candidates
+from ..mono.direct_init import Alignment, DirectInitializer, Reference
 from ..mono.init import Tracks, TwoViewTracker
 from ..mono.motions import Motion, Motions, PoseAt
 from ..mono.window import Prior, Window
@@ -52,6 +53,7 @@ __all__ = ["FORMAT", "VERSION", "STATE_TYPES", "Checkpoint", "save_checkpoint", 
 FORMAT, VERSION = "mbavo-checkpoint", 1
 STATE_TYPES = {cls.__name__: cls for cls in (
     RunState, KeyframeState, PendingDeblur, Fit, ExposureEstimate, RawFrame, MonoState, Motions, Motion, PoseAt, TwoViewTracker,
+    DirectInitializer, Reference, Alignment,
     Tracks, MonoConfig, Window, Prior, Candidates, Keyframe, LevelPoints, Pose, ExposureTrajectory, SplineTrajectory, PinholeCamera)}
 DTYPES = frozenset({"bool", "int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64", "float16", "float32", "float64"})
 KINDS = ("numpy", "jax", "scalar")

@@ -36,6 +36,7 @@ from ..image import delinearize, linearize, quantize16
 from ..mono.ba import BAReport, bundle_adjust, marginalize
 from ..mono.candidates import FrameBlur, activate, select_candidates, trace
 from ..mono.depthmap import filled_depth, project_points, sparse_depth
+from ..mono.direct_init import DirectInitializer
 from ..mono.init import TwoView, TwoViewTracker
 from ..mono.keyframes import wants_keyframe
 from ..mono.motions import Motions, PoseAt
@@ -63,7 +64,7 @@ class MonoState:
     """The monocular system between frames: the initialiser while not initialised, else the
     window (keyframe slots oldest first, with their stamps) and each slot's candidate points."""
 
-    initialiser: Any = None  # mono.init.TwoViewTracker while initialising
+    initialiser: Any = None  # mono.init.TwoViewTracker or mono.direct_init.DirectInitializer while initialising
     reference: tuple[float, np.ndarray] | None = None  # (stamp, raw image) the initialiser started from
     tries: int = 0  # frames offered to the initialiser since its reference
     origin: Pose = dataclasses.field(default_factory=Pose.identity)  # the world pose the next initialisation starts at
@@ -160,18 +161,26 @@ class MonoPipeline(RGBDPipeline):
         report = self.exposure_report(state, frame, 0.0)
         return state, FrameOutcome(index, frame.timestamp, "initialising", exposure=report, note=note)
 
+    def start_initialiser(self, image):
+        """The initialiser ``mono.initialiser`` names, its reference ``image``: corners (``mono.init``) or
+        direct (``mono.direct_init``, comparing frames in linear radiance)."""
+        cfg = self.config.mono
+        if cfg.initialiser == "direct":
+            return DirectInitializer.start(image, self.camera, cfg, gamma=self.config.tracker.response_gamma)
+        return TwoViewTracker.start(image, self.camera, cfg)
+
     def _initialise(self, state: RunState, frame, index: int) -> tuple[RunState, FrameOutcome]:
         """Offer the frame to the two-view initialiser; start the system when it succeeds."""
         mono, cfg = state.backend, self.config.mono
         if mono.initialiser is None or mono.tries >= cfg.init_max_frames:
             again = f" (no initialisation in {mono.tries} frames: starting again)" if mono.initialiser is not None else ""
-            mono = mono.replace(initialiser=TwoViewTracker.start(frame.image, self.camera, cfg),
+            mono = mono.replace(initialiser=self.start_initialiser(frame.image),
                                 reference=(frame.timestamp, frame.image), tries=0).start_at(frame.timestamp)
             return self._waiting(state.replace(backend=mono), frame, index, "initialising: reference frame" + again)
         initialiser, two_view = mono.initialiser.update(frame.image)
         mono = mono.replace(initialiser=initialiser, tries=mono.tries + 1)
         if two_view.restart:  # too few corners left to ever succeed: this frame is the new reference
-            mono = mono.replace(initialiser=TwoViewTracker.start(frame.image, self.camera, cfg),
+            mono = mono.replace(initialiser=self.start_initialiser(frame.image),
                                 reference=(frame.timestamp, frame.image), tries=0).start_at(frame.timestamp)
         state = state.replace(backend=mono)
         if not two_view.ok:

@@ -44,6 +44,7 @@ import yaml
 
 from ..blur import plane_depths_from_keyframe, render_blurry
 from ..config import AT_LEAST_1, DEPTH_SIGMA, FINITE, NONNEG, PRESETS, SynthConfig
+from ..datasets.imu import IMU_FILE, imu_block
 from ..errors import ConfigError, MbavoError
 from ..geometry import quaternion as quat
 from ..geometry.camera import PinholeCamera
@@ -53,44 +54,16 @@ from ..image import delinearize
 from ..io import (ExposureRows, prepare_out_dir, sampled_rows, write_camera_yaml, write_exposure_file, write_exposure_rows,
                   write_tum_trajectory)
 from ..progress import bar
+from .imu import IMU_GROUNDTRUTH, write_imu
 from .metadata import EXPOSURE_ROWS, GROUNDTRUTH_EXPOSURE
+from .path import camera_path
 from .scene import CAMERA_CENTRE, Scene, make_scene, render_exposure, render_rolling_exposure, scene_arrays
 
-__all__ = ["SynthConfig", "PRESETS", "generate_sequence", "blur_real_sequence", "camera_path", "mean_blur_length", "path_bend",
+__all__ = ["SynthConfig", "PRESETS", "generate_sequence", "fit_exposure", "probe_blur", "blur_real_sequence", "camera_path", "mean_blur_length", "path_bend",
            "sampled_rows", "sub_frame_times", "sensor_depth", "depth_scale", "DEPTH_SIGMA", "synth_memory_bytes"]
 
 
-def camera_path(t, speed: float, rotation_rate: float, seed: int = 0, shake_deg: float = 0.0, shake_hz: float = 12.0) -> Pose:
-    """``T_world_cam`` at time t (s): a smooth Lissajous path inside the room, looking along +z.
-
-    Peak linear speed ≈ ``speed`` m/s, peak angular rate ≈ ``rotation_rate`` deg/s. ``shake_deg`` > 0
-    adds a handheld shake: rotations of that amplitude about x and y at ``shake_hz``, a quarter
-    period apart, so the view circles and a path spanning a good part of its period is curved.
-    """
-    rng = np.random.default_rng(seed + 7)
-    ph = rng.uniform(0, 2 * np.pi, size=6)
-    w = 2 * np.pi * np.array([0.23, 0.31, 0.17, 0.41, 0.29, 0.19])
-    t = jnp.asarray(t, jnp.float32)
-    a = speed / w[0]
-    pos = jnp.stack(
-        [
-            a * jnp.sin(w[0] * t + ph[0]),
-            0.5 * a * w[0] / w[1] * jnp.sin(w[1] * t + ph[1]),
-            0.6 * a * w[0] / w[2] * jnp.sin(w[2] * t + ph[2]) - 0.5,
-        ]
-    )
-    b = np.deg2rad(rotation_rate) / w[3]
-    rot = jnp.stack(
-        [
-            0.6 * b * jnp.sin(w[4] * t + ph[4]) * w[3] / w[4],
-            b * jnp.sin(w[3] * t + ph[3]),
-            0.3 * b * jnp.sin(w[5] * t + ph[5]) * w[3] / w[5],
-        ]
-    )
-    if shake_deg > 0:
-        phase = float(2 * np.pi * shake_hz) * t + float(rng.uniform(0, 2 * np.pi))
-        rot = rot + np.deg2rad(shake_deg) * jnp.stack([jnp.sin(phase), jnp.cos(phase), jnp.zeros_like(phase)])
-    return Pose(quat.exp(rot), pos)
+IMU_MARGIN_S = 0.5  # IMU samples before the first frame's exposure and after the last one's (s)
 
 
 def _path_poses(times, cfg: SynthConfig) -> Pose:
@@ -218,7 +191,7 @@ def _prepare_out(out) -> pathlib.Path:
     prepare_out_dir(out)
     for sub in ("rgb", "depth", "sharp"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    for name in ("times.txt", "exposure.txt", GROUNDTRUTH_EXPOSURE, EXPOSURE_ROWS):  # a previous output's
+    for name in ("times.txt", "exposure.txt", GROUNDTRUTH_EXPOSURE, EXPOSURE_ROWS, IMU_FILE, IMU_GROUNDTRUTH):  # a previous output's
         (out / name).unlink(missing_ok=True)
     return out
 
@@ -285,12 +258,13 @@ def _render_frame(cfg: SynthConfig, arrays, camera: PinholeCamera, t_mid: float)
 def generate_sequence(cfg: SynthConfig, out, progress: bool = True) -> dict:
     """Render a blurry sequence of ``cfg.scene`` into ``out``; returns the summary written to
     ``synth.yaml``. ``progress``: a progress bar on stderr (when it is a terminal)."""
-    scene = make_scene(cfg.scene, cfg.seed, use_real_textures=cfg.real_textures)
+    scene = make_scene(cfg.scene, cfg.seed, use_real_textures=cfg.real_textures, texture=cfg.texture)
     _check_memory(cfg, len(scene.boxes))
-    out = _prepare_out(out)
     f = 525.0 * cfg.width / 640.0
     camera = PinholeCamera.create(f, f, (cfg.width - 1) / 2, (cfg.height - 1) / 2, cfg.width, cfg.height)
     arrays = scene_arrays(scene)
+    cfg = fit_exposure(cfg, arrays, camera) if cfg.blur_px > 0 else cfg
+    out = _prepare_out(out)
     scale = depth_scale(scene)
     rng = np.random.default_rng(cfg.seed + 1000)
     stamps, frames = [], []
@@ -313,14 +287,47 @@ def generate_sequence(cfg: SynthConfig, out, progress: bool = True) -> dict:
         pbar.update()
     pbar.close()
     exposure_ms = cfg.exposure_ms if cfg.exposure_info else None
+    half_span = 0.5 * (cfg.exposure_ms + cfg.readout_ms) / 1000.0 + IMU_MARGIN_S
+    imu = write_imu(out, cfg, stamps[0] - half_span, stamps[-1] + half_span) if cfg.imu else None
     summary = _write_layout(out, camera, cfg.fps, exposure_ms, cfg.response_gamma, stamps, stamps, [f.mid for f in frames],
                             [f.start for f in frames], [f.end for f in frames], [f.blur_px for f in frames],
-                            DEPTH_SIGMA[cfg.depth_model], scale, cfg.readout_ms)
+                            DEPTH_SIGMA[cfg.depth_model], scale, cfg.readout_ms, {} if imu is None else {"imu": imu_block(imu)})
     if cfg.readout_ms > 0:
         _write_rows(out, stamps, frames, cfg.height)
     summary.update(_timing_summary(cfg.exposure_ms, cfg.readout_ms, [f.bend_px for f in frames]))
     summary.update(source=f"synthetic {cfg.scene}", config=dataclasses.asdict(cfg), textures=list(scene.texture_names))
     return _finish(out, summary, t0, cfg.exposure_info)
+
+
+def probe_blur(cfg: SynthConfig, arrays, camera: PinholeCamera, exposure_s: float, probes: int = 8) -> float:
+    """Mean blur (px, :func:`mean_blur_length`) of ``probes`` frames spread over ``cfg``'s
+    sequence at exposure ``exposure_s`` (16 poses of the middle row's exposure; the sharp depth)."""
+    blur = []
+    for t_mid in 1.0 + np.linspace(0, cfg.frames - 1, probes) / cfg.fps:
+        mid = camera_path(t_mid, cfg.speed, cfg.rotation_rate, cfg.seed, cfg.shake_deg, cfg.shake_hz)
+        _, _, depth = render_exposure(arrays, camera, jax.tree_util.tree_map(lambda a: a[None], mid), mid, cfg.response_gamma)
+        poses = _path_poses(t_mid + np.linspace(-0.5, 0.5, 16) * exposure_s, cfg)
+        blur.append(mean_blur_length(np.asarray(depth), camera, poses, mid))
+    return float(np.mean(blur))
+
+
+def fit_exposure(cfg: SynthConfig, arrays, camera: PinholeCamera) -> SynthConfig:
+    """``cfg`` with ``exposure_ms`` such that the mean blur (:func:`probe_blur`) is ``cfg.blur_px``:
+    along the same path the blur grows about in proportion to the exposure, so two proportional
+    steps from ``exposure_ms`` (half the frame interval when 0). ConfigError when the camera does
+    not move or the blur needs an exposure longer than the frame interval (the message gives the
+    blur that is within reach)."""
+    interval, tau = 1.0 / cfg.fps, (cfg.exposure_ms / 1000.0) or 0.5 / cfg.fps
+    for _ in range(2):
+        blur = probe_blur(cfg, arrays, camera, tau)
+        if blur < 1e-3:
+            raise ConfigError(f"blur_px {cfg.blur_px:g}: the camera does not move (speed and rotation_rate 0?), so nothing blurs")
+        if tau * cfg.blur_px / blur > interval:
+            raise ConfigError(f"blur_px {cfg.blur_px:g}: needs an exposure of about {1000 * tau * cfg.blur_px / blur:.0f} ms, longer than "
+                              f"the frame interval ({1000 * interval:.1f} ms); about {blur * interval / tau:.1f} px is within reach at "
+                              "this speed, rotation_rate and image size")
+        tau = tau * cfg.blur_px / blur
+    return dataclasses.replace(cfg, exposure_ms=1000.0 * tau)
 
 
 def _write_rows(out, stamps, truths: list[_FrameTruth], height: int) -> None:
@@ -345,11 +352,12 @@ def _finish(out, summary: dict, t0: float, exposure_info: bool) -> dict:
 
 
 def _write_layout(out, camera, fps, exposure_ms, gamma, stamps, gt_stamps, mids, starts, ends, blur, depth_sigma,
-                  scale=5000.0, readout_ms: float = 0.0) -> dict:
+                  scale=5000.0, readout_ms: float = 0.0, extra_camera: dict | None = None) -> dict:
     """Write the lists, trajectories and camera; ``gt_stamps`` are the frames with ground truth;
     depth images hold ``scale`` units per metre. ``exposure_ms`` None: no exposure information (no
     times.txt nor camera.yaml ``exposure_ms``; the exposure paths as ground truth only, in
-    groundtruth_exposure.txt). camera.yaml records ``readout_ms`` when it is > 0."""
+    groundtruth_exposure.txt). camera.yaml records ``readout_ms`` when it is > 0, and ``extra_camera``'s keys
+    (the ``imu:`` block)."""
     names = [f"{t:.6f}.png" for t in stamps]
     with open(out / "rgb.txt", "w") as fh:
         fh.write("# blurry images (mbavo synth)\n# timestamp filename\n")
@@ -366,7 +374,7 @@ def _write_layout(out, camera, fps, exposure_ms, gamma, stamps, gt_stamps, mids,
     exposure = {} if exposure_ms is None else {"exposure_ms": float(exposure_ms)}
     exposure.update({"readout_ms": float(readout_ms)} if readout_ms > 0 else {})
     write_camera_yaml(out / "camera.yaml", **camera.as_dict(), depth_scale=float(scale), **exposure, fps=float(fps),
-                      response_gamma=float(gamma), depth_sigma=[float(x) for x in depth_sigma])
+                      response_gamma=float(gamma), depth_sigma=[float(x) for x in depth_sigma], **(extra_camera or {}))
     blur = np.asarray(blur)
     return {
         "frames": len(stamps),

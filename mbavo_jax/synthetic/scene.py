@@ -1,5 +1,8 @@
 """Ray-cast scenes of textured axis-aligned boxes: a room, hall or other enclosure seen from inside
-plus boxes in it (``make_scene``: room, cluttered, deep, distant).
+plus boxes in it (``make_scene``: room, cluttered, deep, distant), or one plane seen obliquely
+(plane: its boxes turned about the camera paths' centre, ``Scene.placement``). Textures: procedural
+noise, tiles and blobs with photos from the shared data folder (mixed), or photo-like dead-leaves
+textures with natural images' 1/f amplitude spectrum on every surface (photo: :func:`dead_leaves`).
 
 Rendering returns linear radiance and z-depth for a camera pose ``T_world_cam``; it is jit-compiled
 and renders many sub-frame poses in one call (``render_exposure``), averaging radiance over the
@@ -23,7 +26,8 @@ from ..image import bilinear_wrapped
 
 __all__ = [
     "Scene", "SCENES", "CAMERA_REGION", "make_textures", "make_scene", "default_scene", "cluttered_scene", "deep_scene",
-    "distant_scene", "texels_per_metre", "scene_arrays", "render_exposure", "render_rolling_exposure",
+    "distant_scene", "plane_scene", "texels_per_metre", "scene_arrays", "render_exposure", "render_rolling_exposure", "dead_leaves",
+    "photo_textures", "TEXTURES",
 ]
 
 TEXTURE_SIZE = 512
@@ -40,6 +44,9 @@ class Scene:
     texels_per_m: np.ndarray
     textures: np.ndarray
     texture_names: tuple[str, ...]
+    placement: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3, 4, dtype=np.float32))
+    """(3, 4) [R | b]: world point p lies at R p + b in the boxes' frame (identity: the boxes are in
+    the world frame; R turns about the camera paths' centre, so distances from it are kept)."""
 
 
 def _value_noise(rng, size, octaves=5, base=4):
@@ -80,6 +87,33 @@ def _procedural(rng, kind, size):
             cv2.circle(img, (int(c[0]), int(c[1])), r, float(rng.uniform(0.2, 1.0)), -1)
         return _normalise(0.8 * cv2.GaussianBlur(img, (0, 0), 1.5) + 0.2 * _value_noise(rng, size))
     raise ValueError(kind)
+
+
+def dead_leaves(rng, size: int, r_min: float = 2.0, r_max: float | None = None, cover: float = 8.0) -> np.ndarray:
+    """A tileable dead-leaves texture (Lee, Mumford & Huang 2001, "Occlusion models for natural
+    images"): opaque discs of uniform random grey dropped one over another, radii with density
+    ∝ r⁻³ on [``r_min``, ``r_max``] (default size/4), until each pixel lies under ``cover`` discs on
+    average. Scale-invariant sizes and occluding edges give natural images' statistics: an amplitude
+    spectrum falling as 1/f. Display values in [0, 1], (size, size)."""
+    r_max = r_max or size / 4
+    a, b = r_min**-2.0, r_max**-2.0
+    mean_area = np.pi * 2.0 / (a - b) * np.log(r_max / r_min)  # E[π r²] under the r⁻³ density
+    n = int(np.ceil(cover * size * size / mean_area))
+    radii = (a - rng.uniform(size=n) * (a - b)) ** -0.5  # inverse of the r⁻³ CDF
+    centres, grey = rng.uniform(0, size, (n, 2)), rng.uniform(size=n)
+    img = np.full((size, size), 0.5, np.float32)
+    for (x, y), r, g in zip(centres, radii, grey):
+        for dx in (0, size, -size):
+            for dy in (0, size, -size):
+                if -r <= x + dx <= size + r and -r <= y + dy <= size + r:  # the copies that reach the tile: tileable
+                    cv2.circle(img, (int(16 * (x + dx)), int(16 * (y + dy))), int(16 * r), float(g), -1, cv2.LINE_8, 4)
+    return _normalise(cv2.GaussianBlur(img, (0, 0), 0.6))
+
+
+def photo_textures(seed: int, size: int = TEXTURE_SIZE, count: int = 6):
+    """``count`` dead-leaves textures (:func:`dead_leaves`) and their names."""
+    rng = np.random.default_rng(seed + 11)
+    return np.stack([dead_leaves(rng, size) for _ in range(count)]), ("photo",) * count
 
 
 def default_shared_data() -> pathlib.Path | None:
@@ -270,24 +304,58 @@ def distant_scene(seed: int = 0, use_real_textures: bool = True, shared_data=Non
     return _assemble(boxes, [True] + [False] * (len(boxes) - 1), tpm, rng, textures, names)
 
 
-SCENES = {"room": default_scene, "cluttered": cluttered_scene, "deep": deep_scene, "distant": distant_scene}
+PLANE_DISTANCE = 3.0  # m from the camera paths' centre to the plane (paths stay over 1.8 m away)
+PLANE_TURN_DEG = (10.0, 30.0)  # the plane's normal turned about x, then about y, from the view axis
 
 
-def make_scene(name: str, seed: int = 0, use_real_textures: bool = True, shared_data=None) -> Scene:
-    """The scene called ``name`` (one of ``SCENES``: room, cluttered, deep, distant)."""
+def _turn(about_x_deg: float, about_y_deg: float) -> np.ndarray:
+    """(3, 4) placement of a turn about x then y, about the camera paths' centre (``Scene.placement``)."""
+    ax, ay = np.deg2rad(about_x_deg), np.deg2rad(about_y_deg)
+    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
+    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
+    r = ry @ rx
+    return np.concatenate([r, (CAMERA_CENTRE - r @ CAMERA_CENTRE)[:, None]], 1).astype(np.float32)
+
+
+def plane_scene(seed: int = 0, use_real_textures: bool = True, shared_data=None) -> Scene:
+    """One textured plane (80 m x 80 m, a wall or a poster seen obliquely) ``PLANE_DISTANCE`` m
+    ahead of the camera paths' centre, its normal turned ``PLANE_TURN_DEG`` from the view axis, so
+    its depth changes across the view; a hall 100 m across is the far background that only views
+    turned past the plane's edge see."""
+    textures, names = make_textures(seed, use_real=use_real_textures, shared_data=shared_data)
+    rng = np.random.default_rng(seed + 5)
+    hall, wall = _box(CAMERA_CENTRE, [50.0, 50.0, 50.0]), _box(CAMERA_CENTRE + [0.0, 0.0, PLANE_DISTANCE + 0.05], [40.0, 40.0, 0.05])
+    scene = _assemble([hall, wall], [True, False], [texels_per_metre(50.0), texels_per_metre(4.0)], rng, textures, names)
+    return dataclasses.replace(scene, placement=_turn(*PLANE_TURN_DEG))
+
+
+SCENES = {"room": default_scene, "cluttered": cluttered_scene, "deep": deep_scene, "distant": distant_scene, "plane": plane_scene}
+TEXTURES = ("mixed", "photo")
+
+
+def make_scene(name: str, seed: int = 0, use_real_textures: bool = True, shared_data=None, texture: str = "mixed") -> Scene:
+    """The scene called ``name`` (one of ``SCENES``: room, cluttered, deep, distant, plane), with
+    its own textures (``texture`` mixed) or dead-leaves ones on every surface (photo)."""
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r} (choose from {', '.join(SCENES)})")
-    return SCENES[name](seed, use_real_textures=use_real_textures, shared_data=shared_data)
+    if texture not in TEXTURES:
+        raise ValueError(f"unknown texture {texture!r} (choose from {', '.join(TEXTURES)})")
+    scene = SCENES[name](seed, use_real_textures=use_real_textures and texture == "mixed", shared_data=shared_data)
+    if texture == "photo":
+        textures, names = photo_textures(seed)
+        scene = dataclasses.replace(scene, textures=textures, texture_names=names, texture=scene.texture % len(names))
+    return scene
 
 
 def scene_arrays(scene: Scene):
-    """The scene as device arrays (boxes, inside, texture index, texels per metre, textures)."""
+    """The scene as device arrays (boxes, inside, texture index, texels per metre, textures, placement)."""
     return (
         jnp.asarray(scene.boxes),
         jnp.asarray(scene.inside),
         jnp.asarray(scene.texture),
         jnp.asarray(scene.texels_per_m),
         jnp.asarray(scene.textures),
+        jnp.asarray(scene.placement, jnp.float32),
     )
 
 
@@ -305,9 +373,10 @@ def _rays(camera: PinholeCamera, T_world_cam: Pose):
 
 def _render_core(arrays, camera: PinholeCamera, T_world_cam: Pose, gamma):
     """Linear radiance and depth (h, w) seen from ``T_world_cam``: one pose, or one per image row."""
-    boxes, inside, tex_idx, tpm, textures = arrays
+    boxes, inside, tex_idx, tpm, textures, placement = arrays
     h, w = camera.height, camera.width
     d, o = _rays(camera, T_world_cam)  # camera z of the hit equals the ray parameter t
+    d, o = d @ placement[:, :3].T, o @ placement[:, :3].T + placement[:, 3]  # into the boxes' frame (a rigid turn keeps t)
     d_safe = jnp.where(jnp.abs(d) < 1e-9, 1e-9, d)
     inv = 1.0 / d_safe
 
